@@ -1,0 +1,209 @@
+"""Capture file format v1 (HDF5; DESIGN.md §4): atomic writing, validated tiled reading.
+
+Root attributes: format = "cohflash-capture", format_version = 1, exposure_s,
+frame_rate_hz, wavelength_m. Optional root attributes that cohflash writes and reads
+when present (extensions, all optional): field_of_view_deg (2,), modulation_index,
+bias_rad, sideband_max_order, adc_bits, dn_per_electron.
+Datasets: frames (4, N, H, W) uint16|float32; frequencies_hz (N,) float64;
+hybrid_phases_rad (4,) float64; optional dark (4, H, W) float32; optional
+truth/depth_m and truth/reflectance (H, W) float32 (truth/ attributes record the
+simulation's settings).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
+
+import h5py
+import numpy as np
+from tqdm.auto import tqdm
+
+from .atomic import atomic_path
+
+FORMAT_NAME = "cohflash-capture"
+FORMAT_VERSION = 1
+REQUIRED_ATTRS = ("exposure_s", "frame_rate_hz", "wavelength_m")
+FRAME_DTYPES = (np.dtype(np.uint16), np.dtype(np.float32))
+
+
+class CaptureError(ValueError):
+    """A capture file is missing, corrupt or does not follow format v1."""
+
+
+def _chunk_shape(num_frames, height, width, frames_per_chunk):
+    return (1, max(1, min(frames_per_chunk, num_frames)), max(1, min(32, height)), width)
+
+
+def write_capture(path, chunks: Iterable[tuple[int, int, np.ndarray]], *, frequencies_hz, height: int, width: int,
+                  dtype, attrs: dict, hybrid_phases_rad=None, dark=None, truth: dict | None = None,
+                  frames_per_chunk: int = 64, progress: bool = True) -> Path:
+    """Write a v1 capture atomically from an iterator of (m0, m1, frames[4, m1−m0, H, W])."""
+    path = Path(path)
+    freqs = np.asarray(frequencies_hz, np.float64)
+    n = freqs.size
+    dtype = np.dtype(dtype)
+    if dtype not in FRAME_DTYPES:
+        raise CaptureError(f"frames dtype must be uint16 or float32, got {dtype}")
+    phases = np.asarray((0.0, np.pi / 2, np.pi, 1.5 * np.pi) if hybrid_phases_rad is None else hybrid_phases_rad,
+                        np.float64)
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["format"] = FORMAT_NAME
+        f.attrs["format_version"] = FORMAT_VERSION
+        for k, v in attrs.items():
+            f.attrs[k] = v
+        missing = [k for k in REQUIRED_ATTRS if k not in f.attrs]
+        if missing:
+            raise CaptureError(f"capture attributes missing: {', '.join(missing)}")
+        frames = f.create_dataset("frames", shape=(4, n, height, width), dtype=dtype,
+                                  chunks=_chunk_shape(n, height, width, frames_per_chunk))
+        f.create_dataset("frequencies_hz", data=freqs)
+        f.create_dataset("hybrid_phases_rad", data=phases)
+        if dark is not None:
+            f.create_dataset("dark", data=np.asarray(dark, np.float32))
+        with tqdm(total=n, unit="frame", desc=f"writing {path.name}", disable=not progress) as bar:
+            written = 0
+            for m0, m1, block in chunks:
+                if block.shape != (4, m1 - m0, height, width):
+                    raise CaptureError(f"frame block {m0}:{m1} has shape {block.shape}")
+                frames[:, m0:m1] = block
+                written += m1 - m0
+                bar.update(m1 - m0)
+        if written != n:
+            raise CaptureError(f"wrote {written} of {n} frames")
+        if truth is not None:
+            g = f.create_group("truth")
+            g.create_dataset("depth_m", data=np.asarray(truth["depth_m"], np.float32))
+            g.create_dataset("reflectance", data=np.asarray(truth["reflectance"], np.float32))
+            for k, v in truth.get("attrs", {}).items():
+                g.attrs[k] = v
+    return path
+
+
+class Capture:
+    """A validated, open v1 capture. Reads pixel tiles without loading the whole file.
+
+    Use as a context manager. Raises CaptureError naming the problem on open."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise CaptureError(f"capture file not found: {self.path}")
+        try:
+            self._file = h5py.File(self.path, "r")
+        except OSError as exc:
+            raise CaptureError(f"{self.path}: not a readable HDF5 file ({exc})") from None
+        try:
+            self._validate()
+        except Exception:
+            self._file.close()
+            raise
+
+    def _fail(self, msg):
+        raise CaptureError(f"{self.path}: {msg}")
+
+    def _validate(self):
+        f = self._file
+        if f.attrs.get("format") != FORMAT_NAME:
+            self._fail(f"attribute format is {f.attrs.get('format')!r}, expected {FORMAT_NAME!r}")
+        version = f.attrs.get("format_version")
+        if version is None or int(version) != FORMAT_VERSION:
+            self._fail(f"format_version {version!r} is not supported (this reader knows version {FORMAT_VERSION})")
+        for k in REQUIRED_ATTRS:
+            if k not in f.attrs:
+                self._fail(f"required attribute {k!r} is missing")
+            v = float(np.asarray(f.attrs[k]))
+            if not (np.isfinite(v) and v > 0):
+                self._fail(f"attribute {k} must be a positive number, got {v}")
+        for name in ("frames", "frequencies_hz", "hybrid_phases_rad"):
+            if name not in f or not isinstance(f[name], h5py.Dataset):
+                self._fail(f"dataset {name!r} is missing")
+        frames = f["frames"]
+        if frames.ndim != 4 or frames.shape[0] != 4:
+            self._fail(f"frames must have shape (4, N, H, W), got {frames.shape}")
+        if frames.dtype not in FRAME_DTYPES:
+            self._fail(f"frames dtype must be uint16 or float32, got {frames.dtype}")
+        _, n, h, w = frames.shape
+        if n < 2 or h < 1 or w < 1:
+            self._fail(f"frames shape {frames.shape}: need at least 2 frames and one pixel")
+        freqs = f["frequencies_hz"]
+        if freqs.shape != (n,):
+            self._fail(f"frequencies_hz has shape {freqs.shape}, expected ({n},) to match frames")
+        if freqs.dtype != np.float64:
+            self._fail(f"frequencies_hz must be float64, got {freqs.dtype}")
+        fr = freqs[()]
+        if not np.all(np.isfinite(fr)):
+            self._fail("frequencies_hz contains NaN or inf")
+        if np.any(np.diff(fr) <= 0):
+            self._fail(f"frequencies_hz must be strictly increasing (first violation at frame {int(np.argmax(np.diff(fr) <= 0)) + 1})")
+        phases = f["hybrid_phases_rad"]
+        if phases.shape != (4,):
+            self._fail(f"hybrid_phases_rad must have shape (4,), got {phases.shape}")
+        if not np.all(np.isfinite(phases[()])):
+            self._fail("hybrid_phases_rad contains NaN or inf")
+        if "dark" in f:
+            if f["dark"].shape != (4, h, w):
+                self._fail(f"dark must have shape (4, {h}, {w}), got {f['dark'].shape}")
+            if not np.all(np.isfinite(f["dark"][()])):
+                self._fail("dark contains NaN or inf")
+        if "truth" in f:
+            for name in ("depth_m", "reflectance"):
+                if name in f["truth"] and f["truth"][name].shape != (h, w):
+                    self._fail(f"truth/{name} must have shape ({h}, {w}), got {f['truth'][name].shape}")
+
+    # -- metadata ---------------------------------------------------------------------------
+    @property
+    def frames(self) -> h5py.Dataset:
+        return self._file["frames"]
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """(N, H, W): frames, rows, columns."""
+        return tuple(self.frames.shape[1:])
+
+    @property
+    def frequencies_hz(self) -> np.ndarray:
+        return self._file["frequencies_hz"][()]
+
+    @property
+    def hybrid_phases_rad(self) -> np.ndarray:
+        return self._file["hybrid_phases_rad"][()]
+
+    @property
+    def attrs(self) -> dict:
+        return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in self._file.attrs.items()}
+
+    @property
+    def dark(self) -> np.ndarray | None:
+        return self._file["dark"][()] if "dark" in self._file else None
+
+    def truth(self, name: str) -> np.ndarray | None:
+        g = self._file.get("truth")
+        return None if g is None or name not in g else g[name][()]
+
+    @property
+    def truth_attrs(self) -> dict:
+        g = self._file.get("truth")
+        return {} if g is None else dict(g.attrs)
+
+    @property
+    def saturation_dn(self) -> float | None:
+        """DN value that marks ADC saturation (uint16 frames), from adc_bits when present."""
+        if self.frames.dtype != np.uint16:
+            return None
+        bits = int(self._file.attrs.get("adc_bits", 16))
+        return float(2**bits - 1)
+
+    # -- data -------------------------------------------------------------------------------
+    def read_tile(self, rows: slice, cols: slice = slice(None)) -> np.ndarray:
+        """Frames of a pixel tile, (4, N, h, w), in the file's dtype."""
+        return self.frames[:, :, rows, cols]
+
+    def close(self):
+        self._file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

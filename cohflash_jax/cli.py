@@ -1,0 +1,236 @@
+"""The `cohflash` command: demo, simulate, reconstruct, scenes."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like HxW (e.g. 256x320), got {text!r}") from None
+    if h < 1 or w < 1:
+        raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
+    return h, w
+
+
+def _steps(text: str) -> int:
+    n = int(text)
+    if n < 2:
+        raise argparse.ArgumentTypeError(f"a sweep needs at least 2 steps, got {n}")
+    return n
+
+
+def _scene_from_args(args):
+    import cohflash_jax as cf
+
+    if args.scene == "file":
+        if not args.depth_map:
+            raise ValueError("scene 'file' needs --depth-map (and optionally --reflectance-map)")
+        return cf.from_files(args.depth_map, args.reflectance_map, depth_scale_m=args.depth_scale_m)
+    return cf.get_scene(args.scene)
+
+
+def cmd_scenes(args) -> int:
+    import cohflash_jax as cf
+
+    print("built-in scenes (default effects):")
+    for name, make in cf.BUILTIN_SCENES.items():
+        s = make()
+        print(f"  {name:10s} {s.description}\n  {'':10s} effects: {', '.join(s.effects)}")
+    print("  file       --depth-map FILE [--reflectance-map FILE] (.npy or image)\n\neffects:")
+    for name, text in cf.KNOWN_EFFECTS.items():
+        print(f"  {name:17s} {text}")
+    return 0
+
+
+def cmd_simulate(args) -> int:
+    import cohflash_jax as cf
+    from cohflash_jax.simulate import simulate_to_file
+
+    scene = _scene_from_args(args)
+    effects = scene.effects if args.effects is None else cf.parse_effects(args.effects)
+    h, w = args.size
+    inst = cf.Instrument.paper(args.steps)
+    t0 = time.perf_counter()
+    path = simulate_to_file(args.out, scene, inst, h, w, seed=args.seed, effects=effects, progress=not args.quiet)
+    print(f"wrote {path}: scene {scene.name}, {h}×{w} px, {args.steps} frames "
+          f"({inst.sweep.start_hz/1e9:.3g}–{inst.sweep.frequencies_hz[-1]/1e9:.4g} GHz, Δf {inst.sweep.step_hz/1e6:.3g} MHz, "
+          f"ambiguity {inst.sweep.ambiguity_m:.2f} m), effects: {', '.join(effects) or 'none'}; "
+          f"{time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _provenance(path: Path, options) -> dict:
+    import dataclasses
+
+    import cohflash_jax as cf
+
+    st = path.stat()
+    return {"input": str(path.resolve()), "input_size_bytes": st.st_size, "input_mtime": st.st_mtime,
+            "cohflash_version": cf.__version__, "options": dataclasses.asdict(options)}
+
+
+def run_reconstruct(capture_path, out, options, calibration=None, png=None, ply=None, tiff=None) -> tuple[dict, dict]:
+    from cohflash_jax.capture import Capture
+    from cohflash_jax.reconstruct import open_and_reconstruct
+    from cohflash_jax.results import save_depth_tiff, save_ply, save_preview_png, write_depth
+
+    capture_path = Path(capture_path)
+    outputs, meta = open_and_reconstruct(capture_path, options, calibration)
+    write_depth(out, outputs, meta, _provenance(capture_path, options))
+    with Capture(capture_path) as cap:
+        fov = tuple(np.asarray(cap.attrs.get("field_of_view_deg", (0.72, 0.58)), float))
+    if png:
+        save_preview_png(png, outputs["depth_m"], outputs["valid"],
+                         title=f"{capture_path.name}: {meta['method']} depth, {outputs['valid'].mean():.1%} valid")
+    if ply:
+        save_ply(ply, outputs["depth_m"], outputs["valid"], outputs["amplitude"], fov)
+    if tiff:
+        save_depth_tiff(tiff, outputs["depth_m"], outputs["valid"])
+    return outputs, meta
+
+
+def _summary(outputs, meta) -> str:
+    from cohflash_jax.reconstruct import STATUS
+
+    valid = outputs["valid"].astype(bool)
+    counts = np.bincount(outputs["fit_status"].astype(int).ravel(), minlength=len(STATUS))
+    flagged = ", ".join(f"{STATUS[k]} {c}" for k, c in enumerate(counts) if k and c)
+    lines = [f"method {meta['method']} ({meta['carrier_alignment']} carrier alignment); ambiguity interval "
+             f"[0, {meta['ambiguity_m']:.3f}) m; DFT bin {meta['bin_depth_m'] * 1e3:.2f} mm",
+             f"valid pixels {valid.sum()} / {valid.size} ({valid.mean():.1%})" + (f"; flagged: {flagged}" if flagged else "")]
+    if valid.any():
+        d = outputs["depth_m"][valid]
+        lines.append(f"depth {d.min():.4f} … {d.max():.4f} m; median predicted σ (CRLB) "
+                     f"{np.median(outputs['sigma_m'][valid]) * 1e3:.3f} mm")
+    lines.append(f"reconstruction {meta['seconds']:.2f} s")
+    return "\n".join(lines)
+
+
+def cmd_reconstruct(args) -> int:
+    from cohflash_jax.reconstruct import ReconstructOptions
+
+    if args.registration:
+        raise NotImplementedError("--registration: four-CCD registration is not implemented yet (issue: Zhang "
+                                  "registration); reconstruct without it")
+    options = ReconstructOptions(method=args.method, tracking=args.tracking, tile_rows=args.tile_rows,
+                                 snr_threshold_db=args.snr_threshold_db, dtype=args.dtype, progress=not args.quiet)
+    outputs, meta = run_reconstruct(args.capture, args.out, options, args.calibration, args.png, args.ply, args.tiff)
+    print(f"wrote {args.out}\n" + _summary(outputs, meta))
+    return 0
+
+
+def cmd_demo(args) -> int:
+    import cohflash_jax as cf
+    from cohflash_jax.capture import Capture
+    from cohflash_jax.reconstruct import ReconstructOptions
+    from cohflash_jax.simulate import simulate_to_file
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    h, w = args.size
+    scene = cf.staircase()
+    inst = cf.Instrument.paper(args.steps)
+    capture = out / "staircase.h5"
+    print(f"simulating the staircase scene: {h}×{w} px, {args.steps} frames, effects: {', '.join(scene.effects)}")
+    t0 = time.perf_counter()
+    simulate_to_file(capture, scene, inst, h, w, seed=args.seed, progress=not args.quiet)
+    t_sim = time.perf_counter() - t0
+    options = ReconstructOptions(method="ml", progress=not args.quiet)
+    outputs, meta = run_reconstruct(capture, out / "depth.h5", options, png=out / "depth.png")
+    with Capture(capture) as cap:
+        truth = cap.truth("depth_m").astype(np.float64)
+    valid = outputs["valid"].astype(bool)
+    err = (outputs["depth_m"] - truth)[valid]
+    print(_summary(outputs, meta))
+    print(f"simulation {t_sim:.1f} s (includes compilation)")
+    if err.size:
+        # interior pixels only for precision: mixed pixels on step edges are a separate effect
+        interior = valid & (np.abs(np.gradient(truth, axis=1)) == 0) & (np.abs(np.gradient(truth, axis=0)) == 0)
+        e_in = (outputs["depth_m"] - truth)[interior]
+        pred = np.median(outputs["sigma_m"][interior]) if interior.any() else float("nan")
+        print(f"against truth: bias {err.mean() * 1e3:+.3f} mm; away from step edges std {e_in.std() * 1e3:.3f} mm "
+              f"(predicted σ {pred * 1e3:.3f} mm, {interior.sum()} px)")
+        steps = np.unique(np.round(truth[interior], 4))
+        rows = [f"{t:9.4f} m → {np.median(outputs['depth_m'][interior & (np.abs(truth - t) < 5e-5)]):9.4f} m"
+                for t in steps]
+        print("true depth → median reconstructed:\n  " + "\n  ".join(rows))
+    print(f"wrote {capture}, {out / 'depth.h5'}, {out / 'depth.png'}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="cohflash", description="Stepped-frequency coherent flash LiDAR: simulate "
+                                "captures, reconstruct depth with stated uncertainty.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    d = sub.add_parser("demo", help="simulate the staircase scene, reconstruct it (ML), write a depth PNG")
+    d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    d.add_argument("--size", type=_size, default=(128, 160), help="HxW (default 128x160)")
+    d.add_argument("--steps", type=_steps, default=3000, help="frequency steps (default 3000)")
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--quiet", action="store_true", help="no progress bars")
+    d.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("simulate", help="simulate a capture file (format v1)")
+    s.add_argument("scene", help="planar, staircase, traffic, or file (with --depth-map)")
+    s.add_argument("--out", required=True, help="capture file to write (.h5)")
+    s.add_argument("--size", type=_size, default=(256, 320), help="HxW (default 256x320)")
+    s.add_argument("--steps", type=_steps, default=3000, help="frequency steps from 0.1 GHz by 1.97 MHz (default 3000)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--effects", default=None, help="comma-separated effects (default: the scene's own); "
+                   "see `cohflash scenes`")
+    s.add_argument("--depth-map", help="scene 'file': depth map (.npy in m, or image × --depth-scale-m)")
+    s.add_argument("--reflectance-map", help="scene 'file': reflectance map (.npy in [0,1], or image)")
+    s.add_argument("--depth-scale-m", type=float, default=1.0, help="metres per image unit of --depth-map")
+    s.add_argument("--quiet", action="store_true")
+    s.set_defaults(func=cmd_simulate)
+
+    r = sub.add_parser("reconstruct", help="depth from a capture → depth.h5 (+ PNG, TIFF, PLY)")
+    r.add_argument("capture")
+    r.add_argument("--out", required=True, help="depth result file (.h5)")
+    r.add_argument("--method", choices=("dft", "interp", "ml"), default="ml")
+    r.add_argument("--calibration", help="hybrid calibration JSON (docs/formats.md)")
+    r.add_argument("--registration", help="four-CCD registration file (not implemented yet)")
+    r.add_argument("--tracking", action="store_true", help="track a drifting carrier phase (turbulence)")
+    r.add_argument("--png", help="colour-mapped depth preview with a colour bar in mm")
+    r.add_argument("--tiff", help="float32 depth TIFF in metres (NaN = invalid)")
+    r.add_argument("--ply", help="point cloud of valid pixels")
+    r.add_argument("--tile-rows", type=int, default=16, help="rows per streamed tile (memory vs speed)")
+    r.add_argument("--snr-threshold-db", type=float, default=None)
+    r.add_argument("--dtype", choices=("float32", "float64"), default="float32",
+                   help="I/Q and FFT precision (ML always float64)")
+    r.add_argument("--quiet", action="store_true")
+    r.set_defaults(func=cmd_reconstruct)
+
+    sc = sub.add_parser("scenes", help="list built-in scenes and effects")
+    sc.set_defaults(func=cmd_scenes)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    if getattr(args, "snr_threshold_db", 0) is None:
+        from cohflash_jax.reconstruct import DEFAULT_SNR_THRESHOLD_DB
+
+        args.snr_threshold_db = DEFAULT_SNR_THRESHOLD_DB
+    try:
+        return args.func(args)
+    except (ValueError, FileNotFoundError, NotImplementedError, OSError) as exc:
+        print(f"cohflash {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted; no partial output was kept", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,201 @@
+"""Maximum-likelihood depth beyond the DFT bin (uniform sweeps), with optimistix.
+
+Model of the carrier-aligned sequence: r[m] = c + A·Σ_{n≥1} 2 w_n cos(2π n f_m τ) + noise,
+where w_n are the sideband weights, c absorbs A·w_0 and any offset. For a uniform sweep
+f_m = f_0 + mΔf, the unitary DFT of each tone is a Dirichlet kernel in closed form, so the
+fit uses only the W ≈ 17 bins around the peak (white noise stays white; DESIGN.md §3
+measured the same precision as the full time-domain fit from ~1 % of the residuals), and
+the harmonics' kernels — aliases included, as the kernel is periodic — are modelled wherever
+they fall in the window.
+
+The model is linear in (c, A), so those are projected out (variable projection): the
+nonlinear fit is one unknown, the depth offset from the coarse estimate in millimetres
+(fitting τ in seconds stalls the optimiser; DESIGN.md §3). A grid of the projected cost
+over ±1.5 bins picks the basin of the right likelihood ripple (period c/(2 f̄)) before
+Levenberg–Marquardt polishes it. float64 throughout: it is ~20 numbers per pixel.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Complex, Float, Int
+
+from ..constants import SPEED_OF_LIGHT_M_PER_S
+
+C = SPEED_OF_LIGHT_M_PER_S
+_SOLVER = lambda: optx.GaussNewton(rtol=1e-7, atol=1e-7)
+
+
+class WindowTables(eqx.Module):
+    """Per-pixel constants of the DFT bins k0..k0+W−1 (see `dirichlet_window`)."""
+
+    cos_b: Float[Array, " W"]
+    sin_b: Float[Array, " W"]
+    phase_b: Complex[Array, " W"]
+    sign: Float[Array, " W"]
+    bins: Float[Array, " W"]
+
+
+def window_tables(k0: Int[Array, ""], width: int, n: int) -> WindowTables:
+    k = (k0 + jnp.arange(width)).astype(jnp.float64)
+    b = jnp.pi * k / n
+    sign = 1.0 - 2.0 * jnp.mod(k, 2)
+    return WindowTables(jnp.cos(b), jnp.sin(b), jnp.exp(-1j * (n - 1) * b), sign, k)
+
+
+def dirichlet_window(x0: Float[Array, ""], tables: WindowTables, n: int) -> Complex[Array, " W"]:
+    """Unitary DFT D(x0 − k/N) = (1/√N) Σ_m e^{i2π(x0 − k/N)m} at the window's bins k.
+
+    Closed form e^{iπ(N−1)x}·sin(πNx)/sin(πx)/√N, expanded with per-bin constants so each
+    call costs five transcendental functions whatever W. At integer x (a tone exactly on a
+    bin) the value is √N; that branch is selected without a 0/0 so gradients stay finite."""
+    a = jnp.pi * x0
+    num = jnp.sin(n * a)
+    den = jnp.sin(a) * tables.cos_b - jnp.cos(a) * tables.sin_b  # sin(π(x0 − k/N))
+    on_bin = jnp.abs(den) < 1e-9
+    safe = jnp.where(on_bin, 1.0, den)
+    pre = jnp.exp(1j * (n - 1) * a) / math.sqrt(n)
+    general = pre * tables.phase_b * (tables.sign * num / safe)
+    return jnp.where(on_bin, math.sqrt(n) + 0j, general)
+
+
+class UniformModel(eqx.Module):
+    """What the ML fit needs to know of a uniform sweep and the modulator (float64)."""
+
+    start_hz: float
+    step_hz: float
+    weights: Float[Array, " K"]  # sideband weights w_0..w_nmax
+    system_delay_s: float = 0.0
+    num_frames: int = eqx.field(static=True, default=0)
+    grid_order: int = eqx.field(static=True, default=1)  # harmonic used by the basin search
+
+    def delay(self, depth_m):
+        return self.system_delay_s + 2.0 * depth_m / C
+
+    def tone_column(self, depth_m, tables: WindowTables, max_order: int | None = None) -> Complex[Array, " W"]:
+        """DFT over the window of Σ_{n≥1} 2 w_n cos(2π n f_m τ) (unit amplitude A)."""
+        tau = self.delay(depth_m)
+        n_frames = self.num_frames
+        total = jnp.zeros(tables.bins.shape, jnp.complex128)
+        top = self.weights.shape[0] - 1 if max_order is None else min(max_order, self.weights.shape[0] - 1)
+        for order in range(1, top + 1):
+            x = order * self.step_hz * tau
+            theta_cycles = order * self.start_hz * tau
+            rot = jnp.exp(2j * jnp.pi * (theta_cycles - jnp.floor(theta_cycles)))
+            pos = dirichlet_window(x, tables, n_frames)
+            neg = dirichlet_window(-x, tables, n_frames)
+            total = total + self.weights[order] * (rot * pos + jnp.conj(rot) * neg)
+        return total
+
+    def dc_column(self, tables: WindowTables) -> Complex[Array, " W"]:
+        return dirichlet_window(jnp.zeros(()), tables, self.num_frames)
+
+
+def _bin_weights(tables: WindowTables, n: int) -> Float[Array, " W"]:
+    """Residual weights: the DC and Nyquist bins of a real sequence are real with twice the
+    variance per component, so they get 1/√2."""
+    edge = (tables.bins == 0) | (tables.bins == n / 2)
+    return jnp.where(edge, 1 / math.sqrt(2), 1.0)
+
+
+def _design(model: UniformModel, depth_m, tables, omega, max_order=None):
+    cols = jnp.stack([model.dc_column(tables), model.tone_column(depth_m, tables, max_order)], axis=1)  # (W, 2)
+    return jnp.concatenate([jnp.real(cols), jnp.imag(cols)], axis=0) * jnp.concatenate([omega, omega])[:, None]
+
+
+def _project(design, y):
+    """Least-squares (c, A) for a 2-column real design, ridge-stabilised for zero signal."""
+    gram = design.T @ design
+    gram = gram + 1e-12 * (jnp.trace(gram) + 1e-300) * jnp.eye(2)
+    coef = jnp.linalg.solve(gram, design.T @ y)
+    return coef, y - design @ coef
+
+
+class FitResult(eqx.Module):
+    depth_m: Float[Array, "..."]
+    offset: Float[Array, "..."]
+    amplitude: Float[Array, "..."]
+    sigma_depth_m: Float[Array, "..."]
+    converged: Array
+    num_steps: Array
+    cost: Float[Array, "..."]
+
+
+def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_depth_m, noise_var,
+               *, grid_half_width_m: float, grid_points: int, max_steps: int) -> FitResult:
+    """ML depth of one pixel from its DFT window (unitary bins k0..k0+W−1)."""
+    n = model.num_frames
+    tables = window_tables(k0, window.shape[0], n)
+    omega = _bin_weights(tables, n)
+    scale = jnp.maximum(jnp.max(jnp.abs(window)), 1e-30)
+    y = jnp.concatenate([jnp.real(window), jnp.imag(window)]) * jnp.concatenate([omega, omega]) / scale
+
+    def residual(offset_mm, max_order=None):
+        design = _design(model, coarse_depth_m + 1e-3 * offset_mm, tables, omega, max_order)
+        return _project(design, y)[1]
+
+    # basin search: projected cost on a grid spanning ±grid_half_width around the coarse
+    # depth, with the strongest harmonic only (cheap; the harmonics shift no basin)
+    grid_mm = jnp.linspace(-1e3 * grid_half_width_m, 1e3 * grid_half_width_m, grid_points)
+    costs = jax.vmap(lambda g: jnp.sum(residual(g, model.grid_order) ** 2))(grid_mm)
+    start = grid_mm[jnp.argmin(costs)]
+    solver = _SOLVER()
+    sol = optx.least_squares(lambda y_, _: residual(y_), solver, start, max_steps=max_steps, throw=False)
+    offset_mm = sol.value
+    depth = coarse_depth_m + 1e-3 * offset_mm
+    design = _design(model, depth, tables, omega)
+    coef, res = _project(design, y)
+    # Fisher information of (depth, c, A): components of a unitary DFT of white noise of
+    # variance σ² carry σ²/2 each (the weights ω already account for DC/Nyquist bins).
+    params = jnp.array([depth, coef[0] * scale, coef[1] * scale])
+
+    def model_vec(p):
+        return _design(model, p[0], tables, omega) @ p[1:]
+
+    jac = jax.jacfwd(model_vec)(params)
+    fisher = jac.T @ jac / (0.5 * jnp.maximum(noise_var, 1e-30))
+    cov = jnp.linalg.pinv(fisher)
+    sigma = jnp.sqrt(jnp.maximum(cov[0, 0], 0.0))
+    converged = sol.result == optx.RESULTS.successful
+    return FitResult(depth, coef[0] * scale, coef[1] * scale, sigma, converged,
+                     sol.stats["num_steps"], jnp.sum(res**2) * scale**2)
+
+
+def refine_ml_uniform(model: UniformModel, windows, k0, coarse_depth_m, noise_var, *,
+                      grid_half_width_m: float, grid_points: int, max_steps: int = 32) -> FitResult:
+    """`refine_one` vmapped over pixels (the leading axis of every array argument)."""
+    fn = lambda w, k, d, v: refine_one(model, w, k, d, v, grid_half_width_m=grid_half_width_m,
+                                       grid_points=grid_points, max_steps=max_steps)
+    return jax.vmap(fn)(windows, k0, coarse_depth_m, noise_var)
+
+
+def grid_for(sweep_bin_depth_m: float, ripple_m: float, half_width_bins: float = 1.0,
+             points_per_ripple: int = 4, max_points: int = 129) -> tuple[float, int]:
+    """Half-width (m) and odd number of points of the basin-search grid."""
+    half = half_width_bins * sweep_bin_depth_m
+    spacing = min(sweep_bin_depth_m, ripple_m) / points_per_ripple
+    points = int(min(max_points, 2 * math.ceil(half / spacing) + 1))
+    return half, points
+
+
+def crlb_phase_locked_m(frequencies_hz, tone_amplitude, noise_sigma) -> float:
+    """Closed-form CRLB (m) of depth for r = c + a·cos(2π f_m τ) + white noise, when the
+    tone's phase is locked to τ (uses all f_m): σ_τ² ≈ σ²/(a²/2 · Σ(2π f_m)²) — valid
+    when amplitude and offset decouple from τ (many cycles over the sweep)."""
+    f = np.asarray(frequencies_hz, np.float64)
+    info = 0.5 * tone_amplitude**2 * np.sum((2 * np.pi * f) ** 2) / noise_sigma**2
+    return float(C / 2 / np.sqrt(info))
+
+
+def crlb_frequency_only_m(num_frames: int, step_hz: float, tone_amplitude, noise_sigma, order: int = 1):
+    """Closed-form CRLB (m) of depth from the tone's frequency alone (real sinusoid,
+    unknown amplitude and phase): var(ω) = 12σ²/(a²·N(N²−1)), ω in rad/frame."""
+    n = num_frames
+    var_omega = 12 * noise_sigma**2 / (tone_amplitude**2 * n * (n**2 - 1))
+    return jnp.sqrt(var_omega) / (2 * np.pi * order * step_hz) * C / 2

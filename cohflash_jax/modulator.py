@@ -1,0 +1,111 @@
+"""Mach–Zehnder modulator: Bessel sideband weights and the exposure-averaged beat S(ψ).
+
+Convention (DESIGN.md §1): drive V(t) = V_b + V_m cos Ωt, modulation index
+β = π·V_m/V_π, x = β/2, bias angle θ_b; field transfer t = cos(θ_b + x cos Ωt) =
+Σ c_n e^{inΩt} with |c_n|² = J_n(x)² cos²θ_b (n even), J_n(x)² sin²θ_b (n odd).
+The exposure-averaged product of reference and echo transfers is
+S(ψ) = |c_0|² + 2 Σ_{n≥1} |c_n|² cos(nψ), ψ = 2π f τ.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+# Trapezoid nodes for the Bessel integral. The rule is exact up to terms J_{M±n}(x),
+# negligible (< 1e-40) for orders n ≤ MAX_ORDER and |x| ≤ MAX_BESSEL_ARGUMENT.
+_BESSEL_NODES = 128
+MAX_ORDER = 32
+MAX_BESSEL_ARGUMENT = 20.0
+
+
+def bessel_j(orders: ArrayLike, x: ArrayLike) -> Float[Array, "..."]:
+    """J_n(x) for integer orders n (|n| ≤ 32) and real |x| ≤ 20, broadcast over x and n.
+
+    Uses the periodic trapezoid rule on Bessel's integral
+    J_n(x) = (1/2π)∫ cos(n t − x sin t) dt, which converges geometrically, is finite and
+    smooth at x = 0 (no NaN, finite gradients of every order) and keeps absolute error
+    at rounding level in float64 and float32 — unlike `jax.scipy.special.bessel_jn`,
+    which is NaN at x = 0 and inaccurate for large arguments.
+    """
+    n = jnp.asarray(orders)
+    x = jnp.asarray(x)
+    dtype = jnp.result_type(x.dtype, jnp.float32)
+    t = jnp.asarray(2 * np.pi * np.arange(_BESSEL_NODES) / _BESSEL_NODES, dtype=dtype)
+    n_b, x_b = jnp.broadcast_arrays(n.astype(dtype), x.astype(dtype))
+    phase = n_b[..., None] * t - x_b[..., None] * jnp.sin(t)
+    return jnp.mean(jnp.cos(phase), axis=-1)
+
+
+def sideband_weights(x: ArrayLike, bias_rad: ArrayLike, max_order: int) -> Float[Array, "... K"]:
+    """|c_n|² for n = 0..max_order (K = max_order + 1), broadcast over x and bias."""
+    if not 0 <= max_order <= MAX_ORDER:
+        raise ValueError(f"max_order must be in 0..{MAX_ORDER}, got {max_order}")
+    x = jnp.asarray(x)
+    bias = jnp.asarray(bias_rad)
+    orders = jnp.arange(max_order + 1)
+    j = bessel_j(orders, x[..., None])
+    even = (orders % 2) == 0
+    cos2 = jnp.cos(bias)[..., None] ** 2
+    sin2 = jnp.sin(bias)[..., None] ** 2
+    return j**2 * jnp.where(even, cos2, sin2)
+
+
+def mean_transmission(x: ArrayLike, bias_rad: ArrayLike) -> Float[Array, "..."]:
+    """S_0 = Σ_n |c_n|² over all orders = ½ + ½·cos(2θ_b)·J_0(2x) (closed form)."""
+    return 0.5 + 0.5 * jnp.cos(2 * jnp.asarray(bias_rad)) * bessel_j(0, 2 * jnp.asarray(x))
+
+
+def beat_spectrum(psi: ArrayLike, weights: Float[Array, "... K"]) -> Float[Array, "..."]:
+    """S(ψ) = w_0 + 2 Σ_{n≥1} w_n cos(nψ) for sideband weights w (last axis = order).
+
+    cos(nψ) is built by the Chebyshev recurrence from cos ψ, so only one cosine is
+    evaluated per sample whatever the order.
+    """
+    psi = jnp.asarray(psi)
+    c1 = jnp.cos(psi)
+    total = weights[..., 0] * jnp.ones_like(c1)
+    prev, cur = jnp.ones_like(c1), c1
+    for n in range(1, weights.shape[-1]):
+        total = total + 2 * weights[..., n] * cur
+        prev, cur = cur, 2 * c1 * cur - prev
+    return total
+
+
+class MZM(eqx.Module):
+    """Modulator settings. `rolloff_3db_hz` models β(f) = β/√(1+(f/f_3dB)²) (∞ = flat)."""
+
+    modulation_index: Float[ArrayLike, ""] = 2.0
+    bias_rad: Float[ArrayLike, ""] = float(np.pi / 4)
+    rolloff_3db_hz: Float[ArrayLike, ""] = float("inf")
+    max_order: int = eqx.field(static=True, default=3)
+
+    def __check_init__(self):
+        if not 0 <= self.max_order <= MAX_ORDER:
+            raise ValueError(f"max_order must be in 0..{MAX_ORDER}, got {self.max_order}")
+        for name in ("modulation_index", "rolloff_3db_hz"):
+            v = getattr(self, name)
+            if isinstance(v, (int, float)) and not v >= 0:
+                raise ValueError(f"MZM.{name} must be ≥ 0, got {v}")
+        if isinstance(self.modulation_index, (int, float)) and self.modulation_index / 2 > MAX_BESSEL_ARGUMENT:
+            raise ValueError(f"modulation_index/2 must be ≤ {MAX_BESSEL_ARGUMENT}")
+
+    def x_at(self, frequencies_hz: ArrayLike) -> Float[Array, "..."]:
+        """Half modulation index x = β(f)/2 at each frequency (roll-off applied)."""
+        f = jnp.asarray(frequencies_hz)
+        ratio = f / jnp.asarray(self.rolloff_3db_hz, dtype=f.dtype)
+        return 0.5 * self.modulation_index / jnp.sqrt(1.0 + ratio**2)
+
+    def weights(self, frequencies_hz: ArrayLike | None = None, max_order: int | None = None):
+        """Sideband weights |c_n|²: (K,) without frequencies, (N, K) with roll-off over f."""
+        order = self.max_order if max_order is None else max_order
+        x = 0.5 * jnp.asarray(self.modulation_index, jnp.float64) if frequencies_hz is None \
+            else self.x_at(frequencies_hz)
+        return sideband_weights(x, self.bias_rad, order)
+
+    def mean_transmission(self, frequencies_hz: ArrayLike | None = None):
+        x = 0.5 * jnp.asarray(self.modulation_index, jnp.float64) if frequencies_hz is None \
+            else self.x_at(frequencies_hz)
+        return mean_transmission(x, self.bias_rad)

@@ -1,0 +1,284 @@
+"""Depth reconstruction of a capture, streamed in pixel tiles.
+
+Per tile (one compiled function per tile shape): data checks → I/Q (nominal or calibrated
+hybrid) → carrier alignment (static or tracked) → one unwindowed unitary rFFT over the
+frame index; its periodic-Hann spectrum (a 3-tap convolution of the same bins) gives the
+coarse peak; `dft` reads depth off the peak bin, `interp` interpolates it, `ml` fits the
+phase-locked model to the W bins around it (`estimate.ml`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from .capture import Capture, CaptureError
+from .constants import SPEED_OF_LIGHT_M_PER_S as C
+from .estimate.coarse import coarse_peak, hann_power, interpolate_peak
+from .estimate.iq import align_carrier_static, align_carrier_tracked, iq_from_frames
+from .estimate.ml import UniformModel, crlb_frequency_only_m, grid_for, refine_ml_uniform
+from .hybrid import Hybrid
+from .modulator import MZM
+
+METHODS = ("dft", "interp", "ml")
+STATUS = {0: "ok", 1: "low_snr", 2: "not_converged", 3: "fit_failed", 4: "bad_data (NaN/inf)",
+          5: "saturated", 6: "dead (constant)", 7: "out_of_range"}
+OK, LOW_SNR, NOT_CONVERGED, FIT_FAILED, BAD_DATA, SATURATED, DEAD, OUT_OF_RANGE = range(8)
+DEFAULT_SNR_THRESHOLD_DB = 13.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+    """Hybrid and system calibration applied before inversion (see docs/formats.md)."""
+
+    hybrid: Hybrid = Hybrid()
+    system_delay_s: float = 0.0
+    modulator: MZM | None = None
+
+    @classmethod
+    def load(cls, path) -> "Calibration":
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"calibration file not found: {path}")
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not valid JSON ({exc})") from None
+        if data.get("format") != "cohflash-calibration":
+            raise ValueError(f"{path}: format is {data.get('format')!r}, expected 'cohflash-calibration'")
+        h = data.get("hybrid", {})
+        try:
+            hybrid = Hybrid(tuple(h.get("phases_rad", Hybrid().phases_rad)),
+                            tuple(h.get("relative_gains", (1.0,) * 4)), tuple(h.get("offsets_dn", (0.0,) * 4)))
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+        mod = data.get("modulator")
+        modulator = None if mod is None else MZM(float(mod["modulation_index"]), float(mod["bias_rad"]),
+                                                 max_order=int(mod.get("max_order", 3)))
+        return cls(hybrid, float(data.get("system_delay_s", 0.0)), modulator)
+
+
+class TileConfig(eqx.Module):
+    iq_weights: jax.Array
+    iq_bias: jax.Array
+    model: UniformModel
+    saturation_dn: float | None = eqx.field(static=True)
+    method: str = eqx.field(static=True)
+    tracking: bool = eqx.field(static=True)
+    track_window: int = eqx.field(static=True)
+    window_bins: int = eqx.field(static=True)
+    grid_half_width_m: float = eqx.field(static=True)
+    grid_points: int = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+    dominant_order: int = eqx.field(static=True)
+    ambiguity_m: float = eqx.field(static=True)
+    bin_depth_m: float = eqx.field(static=True)
+    snr_threshold: float = eqx.field(static=True)
+    dtype: str = eqx.field(static=True)
+
+
+@eqx.filter_jit
+def process_tile(cfg: TileConfig, frames, dark):
+    """Depth and companions for a tile of pixels: frames (4, N, P) → dict of (P,) arrays.
+
+    The I/Q stage runs in the file's (frame, pixel) layout; only the carrier-aligned real
+    sequence is transposed to (pixel, frame) for the FFT along its contiguous last axis."""
+    n = frames.shape[1]
+    real = jnp.float64 if cfg.dtype == "float64" else jnp.float32
+    high, low = jnp.max(frames, axis=1), jnp.min(frames, axis=1)  # (4, P)
+    dead = jnp.any(high == low, axis=0)
+    saturated = jnp.zeros(dead.shape, bool) if cfg.saturation_dn is None else jnp.any(high >= cfg.saturation_dn, axis=0)
+    if jnp.issubdtype(frames.dtype, jnp.floating):
+        finite = jnp.all(jnp.isfinite(frames), axis=(0, 1))
+        frames = jnp.where(jnp.isfinite(frames), frames, 0.0)
+    else:
+        finite = jnp.ones(dead.shape, bool)
+    i, q = iq_from_frames(frames.astype(real), cfg.iq_weights, cfg.iq_bias, dark)  # (N, P) each
+    i, q = jax.lax.optimization_barrier((i, q))  # materialise once; later passes read I/Q, not frames
+    if cfg.tracking:
+        r, qr, _ = align_carrier_tracked(i, q, cfg.track_window)
+        noise_var = jnp.var(qr, axis=0)
+    else:
+        r, noise_var, _ = align_carrier_static(i, q)
+    noise_var = noise_var.astype(jnp.float64)
+    spec = jnp.fft.rfft(r.T, axis=-1) / math.sqrt(n)  # (P, K), unitary: white noise stays white
+    power = hann_power(spec, n)
+    peak = coarse_peak(power)
+    frac_bin = peak.astype(jnp.float64) if cfg.method == "dft" else interpolate_peak(power, peak).astype(jnp.float64)
+    m = cfg.model
+    coarse = frac_bin / n / (cfg.dominant_order * m.step_hz) * C / 2 - C * m.system_delay_s / 2
+    tone_weight = m.weights[cfg.dominant_order]
+    if cfg.method == "ml":
+        k_count = spec.shape[-1]
+        w = min(cfg.window_bins, k_count)
+        k0 = jnp.clip(peak - w // 2, 0, k_count - w)
+        windows = jnp.take_along_axis(spec, k0[:, None] + jnp.arange(w), axis=-1).astype(jnp.complex128)
+        fit = refine_ml_uniform(m, windows, k0, coarse, noise_var, grid_half_width_m=cfg.grid_half_width_m,
+                                grid_points=cfg.grid_points, max_steps=cfg.max_steps)
+        depth, amplitude, sigma = fit.depth_m, jnp.abs(fit.amplitude), fit.sigma_depth_m
+        finite_fit = jnp.isfinite(depth) & jnp.isfinite(sigma) & jnp.isfinite(amplitude)
+        converged = fit.converged
+        wandered = jnp.abs(depth - coarse) > 2 * cfg.bin_depth_m
+    else:
+        # amplitude from the Hann peak: |H| = a·w·√N/4 for a tone a·2w·cos, Hann gain ½
+        peak_mag = jnp.sqrt(jnp.take_along_axis(power, peak[:, None], axis=-1)[:, 0]).astype(jnp.float64)
+        amplitude = 2 * peak_mag / (math.sqrt(n) * tone_weight)
+        depth = coarse
+        sigma = crlb_frequency_only_m(n, m.step_hz, amplitude * 2 * tone_weight, jnp.sqrt(noise_var),
+                                      cfg.dominant_order)
+        if cfg.method == "dft":  # a bin read off without interpolation is uniform within ±½ bin
+            sigma = jnp.maximum(sigma, cfg.bin_depth_m / math.sqrt(12))
+        finite_fit = jnp.isfinite(depth)
+        converged = jnp.ones_like(finite_fit)
+        wandered = jnp.zeros_like(finite_fit)
+    snr = n * (amplitude * tone_weight) ** 2 / jnp.maximum(noise_var, 1e-30)
+    out_of_range = (depth < 0) | (depth >= cfg.ambiguity_m) | wandered
+    status = jnp.full(depth.shape, OK, jnp.int8)
+    for cond, code in ((snr < cfg.snr_threshold, LOW_SNR), (out_of_range, OUT_OF_RANGE),
+                       (~converged, NOT_CONVERGED), (~finite_fit, FIT_FAILED), (dead, DEAD),
+                       (saturated, SATURATED), (~finite, BAD_DATA)):
+        status = jnp.where(cond, jnp.int8(code), status)
+    safe = lambda a: jnp.where(jnp.isfinite(a), a, 0.0)
+    return {"depth_m": safe(depth), "amplitude": safe(amplitude), "sigma_m": safe(sigma),
+            "snr": safe(snr), "fit_status": status, "valid": status == OK, "coarse_depth_m": safe(coarse)}
+
+
+@dataclasses.dataclass
+class ReconstructOptions:
+    method: str = "ml"
+    tracking: bool = False
+    track_window_frames: int = 101
+    tile_rows: int = 16
+    window_bins: int = 17
+    max_steps: int = 16
+    snr_threshold_db: float = DEFAULT_SNR_THRESHOLD_DB
+    dtype: str = "float32"
+    progress: bool = True
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
+        if self.dtype not in ("float32", "float64"):
+            raise ValueError("dtype must be float32 or float64")
+        if self.tile_rows < 1:
+            raise ValueError("tile_rows must be ≥ 1")
+
+
+def modulator_from_attrs(attrs: dict) -> MZM:
+    """The capture's modulator (optional attributes) or the default MZM."""
+    default = MZM()
+    return MZM(float(attrs.get("modulation_index", default.modulation_index)),
+               float(attrs.get("bias_rad", default.bias_rad)),
+               max_order=int(attrs.get("sideband_max_order", default.max_order)))
+
+
+def build_config(frequencies_hz, hybrid: Hybrid, modulator: MZM, system_delay_s: float,
+                 saturation_dn, options: ReconstructOptions) -> TileConfig:
+    f = np.asarray(frequencies_hz, np.float64)
+    n = f.size
+    step = float(np.median(np.diff(f)))
+    if not np.allclose(np.diff(f), step, rtol=1e-9, atol=1e-3):
+        raise NotImplementedError("non-uniform frequency schedules: the tiled pipeline handles uniform sweeps "
+                                  "only (the DFT window model assumes f_m = f_0 + mΔf)")
+    weights = np.asarray(modulator.weights(), np.float64)
+    if weights.shape[0] < 2 or not np.any(weights[1:] > 1e-12 * max(weights[0], 1e-300)):
+        raise ValueError("the modulator settings give no beat tone (all sideband weights beyond n=0 vanish): "
+                         "check modulation_index and bias_rad")
+    dominant = int(np.argmax(weights[1:]) + 1)
+    bin_depth = C / (2 * n * step)
+    ripple = C / (2 * float(np.mean(f)))
+    half, points = grid_for(bin_depth, ripple)
+    iq_w, iq_b = hybrid.iq_matrix_dn(1.0)
+    model = UniformModel(float(f[0]), step, jnp.asarray(weights), float(system_delay_s), num_frames=n,
+                         grid_order=dominant)
+    return TileConfig(iq_w, iq_b, model, saturation_dn, options.method, options.tracking,
+                      options.track_window_frames, options.window_bins, half, points, options.max_steps,
+                      dominant, C / (4 * step * dominant), bin_depth, 10 ** (options.snr_threshold_db / 10),
+                      options.dtype)
+
+
+def reconstruct_array(frames, frequencies_hz, options: ReconstructOptions | None = None, *,
+                      hybrid: Hybrid | None = None, modulator: MZM | None = None, system_delay_s: float = 0.0,
+                      dark=None, saturation_dn=None) -> dict:
+    """Reconstruct in-memory frames (4, N, H, W) → dict of (H, W) arrays (tests, small data)."""
+    options = options or ReconstructOptions(progress=False)
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.shape[0] != 4:
+        raise ValueError(f"frames must have shape (4, N, H, W), got {frames.shape}")
+    _, n, h, w = frames.shape
+    cfg = build_config(frequencies_hz, hybrid or Hybrid(), modulator or MZM(), system_delay_s, saturation_dn, options)
+    d = None if dark is None else jnp.asarray(np.asarray(dark, np.float32).reshape(4, h * w))
+    out = process_tile(cfg, jnp.asarray(frames.reshape(4, n, h * w)), d)
+    return {k: np.asarray(v).reshape(h, w) for k, v in out.items()}
+
+
+def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibration: Calibration | None = None):
+    """Reconstruct an open capture tile by tile (bounded memory) → (outputs, metadata)."""
+    n, h, w = capture.shape
+    attrs = capture.attrs
+    hybrid = Hybrid(tuple(capture.hybrid_phases_rad))
+    modulator = modulator_from_attrs(attrs)
+    delay = 0.0
+    if calibration is not None:
+        hybrid = Hybrid(calibration.hybrid.phases_rad, calibration.hybrid.relative_gains, calibration.hybrid.offsets_dn)
+        modulator = calibration.modulator or modulator
+        delay = calibration.system_delay_s
+    if hybrid.conditioning() > 1e3:
+        raise ValueError(f"hybrid phases {np.round(np.asarray(hybrid.phases_rad), 4)} are nearly equal: "
+                         "I/Q cannot be separated")
+    cfg = build_config(capture.frequencies_hz, hybrid, modulator, delay, capture.saturation_dn, options)
+    rows = min(options.tile_rows, h)
+    dark = capture.dark
+    outputs = {}
+    t0 = time.perf_counter()
+
+    def tile_inputs(r0):
+        r1 = min(h, r0 + rows)
+        block = capture.read_tile(slice(r0, r1))
+        if r1 - r0 < rows:  # pad the last tile so every tile has one compiled shape
+            block = np.concatenate([block, np.zeros((4, n, rows - (r1 - r0), w), block.dtype)], axis=2)
+        d = None
+        if dark is not None:
+            dd = dark[:, r0:r1]
+            if r1 - r0 < rows:
+                dd = np.concatenate([dd, np.zeros((4, rows - (r1 - r0), w), dd.dtype)], axis=1)
+            d = jnp.asarray(dd.reshape(4, rows * w))
+        return r1, jnp.asarray(block.reshape(4, n, rows * w)), d
+
+    starts = list(range(0, h, rows))
+    with tqdm(total=h * w, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True) as bar:
+        nxt = tile_inputs(starts[0])
+        for idx, r0 in enumerate(starts):
+            r1, block, d = nxt
+            result = process_tile(cfg, block, d)  # dispatched asynchronously
+            if idx + 1 < len(starts):
+                nxt = tile_inputs(starts[idx + 1])  # read the next tile while this one computes
+            for k, v in result.items():
+                arr = np.asarray(v).reshape(rows, w)[: r1 - r0]
+                outputs.setdefault(k, np.empty((h, w), arr.dtype))[r0:r1] = arr
+            bar.update((r1 - r0) * w)
+    meta = {"method": options.method, "ambiguity_m": cfg.ambiguity_m, "bin_depth_m": cfg.bin_depth_m,
+            "carrier_alignment": "tracked" if options.tracking else "static",
+            "snr_threshold_db": options.snr_threshold_db, "dtype": options.dtype,
+            "seconds": time.perf_counter() - t0, "window_bins": options.window_bins,
+            "dominant_harmonic": cfg.dominant_order,
+            "frequency_path": "uniform sweep: rFFT over frame index; ML on the DFT window (Dirichlet kernels)"}
+    return outputs, meta
+
+
+def open_and_reconstruct(path, options: ReconstructOptions, calibration_path=None):
+    calibration = None if calibration_path is None else Calibration.load(calibration_path)
+    with Capture(path) as cap:
+        try:
+            return reconstruct_capture(cap, options, calibration)
+        except (NotImplementedError, ValueError) as exc:
+            raise CaptureError(f"{path}: {exc}") from None

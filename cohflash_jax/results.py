@@ -1,0 +1,126 @@
+"""Depth result file (HDF5, `cohflash-depth` v1) and exports (preview PNG, float TIFF, PLY).
+
+depth.h5 — root attributes: format = "cohflash-depth", format_version = 1, method,
+ambiguity_m, bin_depth_m, carrier_alignment, snr_threshold_db, status_codes (JSON),
+provenance (JSON: input name, size, mtime, package version, options). Datasets (H, W):
+depth_m float64 (range along the pixel's ray, after τ_sys), amplitude float32 (the 2-D
+intensity image, signal DN), valid uint8, sigma_m float32 (CRLB from fitted amplitude and
+measured noise), snr float32 (peak-bin SNR, linear), fit_status int8, coarse_depth_m
+float64. Invalid pixels keep their numbers (never NaN) and valid = 0.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from .atomic import atomic_path
+
+FORMAT_NAME = "cohflash-depth"
+FORMAT_VERSION = 1
+_DTYPES = {"depth_m": np.float64, "amplitude": np.float32, "valid": np.uint8, "sigma_m": np.float32,
+           "snr": np.float32, "fit_status": np.int8, "coarse_depth_m": np.float64}
+
+
+def write_depth(path, outputs: dict, meta: dict, provenance: dict) -> Path:
+    from .reconstruct import STATUS
+
+    path = Path(path)
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["format"] = FORMAT_NAME
+        f.attrs["format_version"] = FORMAT_VERSION
+        for k, v in meta.items():
+            f.attrs[k] = v
+        f.attrs["status_codes"] = json.dumps(STATUS)
+        f.attrs["provenance"] = json.dumps(provenance, default=str)
+        for name, dtype in _DTYPES.items():
+            if name in outputs:
+                f.create_dataset(name, data=np.asarray(outputs[name]).astype(dtype), compression="gzip")
+    return path
+
+
+def read_depth(path) -> tuple[dict, dict]:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"depth file not found: {path}")
+    with h5py.File(path, "r") as f:
+        if f.attrs.get("format") != FORMAT_NAME:
+            raise ValueError(f"{path}: not a cohflash depth file")
+        return {k: f[k][()] for k in f.keys()}, dict(f.attrs)
+
+
+def save_preview_png(path, depth_m, valid, title: str = "", reference_m: float | None = None) -> Path:
+    """Colour-mapped depth in mm relative to a reference (median of valid pixels), colour
+    bar in mm, invalid pixels grey."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    valid = np.asarray(valid, bool)
+    depth = np.asarray(depth_m, np.float64)
+    ref = float(np.median(depth[valid])) if reference_m is None and valid.any() else (reference_m or 0.0)
+    rel_mm = np.where(valid, (depth - ref) * 1e3, np.nan)
+    finite = rel_mm[np.isfinite(rel_mm)]
+    lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (-1, 1))
+    cmap = plt.get_cmap("turbo").copy()
+    cmap.set_bad("0.6")
+    h, w = depth.shape
+    fig, ax = plt.subplots(figsize=(6.4, 6.4 * h / w + 0.6), dpi=110)
+    im = ax.imshow(rel_mm, cmap=cmap, vmin=lo, vmax=hi if hi > lo else lo + 1, interpolation="nearest")
+    cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04)
+    cb.set_label(f"depth − {ref:.4f} m  (mm)")
+    ax.set_title(title or f"depth ({valid.mean():.1%} valid; grey = invalid)")
+    ax.set_xlabel("column")
+    ax.set_ylabel("row")
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return path
+
+
+def save_depth_tiff(path, depth_m, valid) -> Path:
+    """32-bit float TIFF of depth in metres, NaN where invalid."""
+    import cv2
+
+    img = np.where(np.asarray(valid, bool), depth_m, np.nan).astype(np.float32)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        ok, buf = cv2.imencode(".tiff", img)
+        if not ok:
+            raise RuntimeError("OpenCV could not encode the TIFF")
+        tmp.write_bytes(buf.tobytes())
+    return path
+
+
+def pixel_rays(height: int, width: int, fov_deg: tuple[float, float]) -> np.ndarray:
+    """Unit ray per pixel (H, W, 3) for a pinhole camera with the given full field of view
+    (horizontal, vertical); z is the optical axis, x right, y down."""
+    fx = (width / 2) / np.tan(np.deg2rad(fov_deg[0]) / 2)
+    fy = (height / 2) / np.tan(np.deg2rad(fov_deg[1]) / 2)
+    v, u = np.meshgrid(np.arange(height) + 0.5 - height / 2, np.arange(width) + 0.5 - width / 2, indexing="ij")
+    rays = np.stack([u / fx, v / fy, np.ones_like(u)], axis=-1)
+    return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+
+
+def save_ply(path, depth_m, valid, amplitude, fov_deg=(0.72, 0.58)) -> Path:
+    """Binary little-endian PLY of valid pixels: x, y, z (m, float32) and intensity."""
+    valid = np.asarray(valid, bool)
+    h, w = valid.shape
+    pts = pixel_rays(h, w, fov_deg) * np.asarray(depth_m, np.float64)[..., None]
+    sel = pts[valid].astype(np.float32)
+    inten = np.asarray(amplitude, np.float32)[valid]
+    vertex = np.empty(sel.shape[0], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
+    vertex["x"], vertex["y"], vertex["z"], vertex["intensity"] = sel[:, 0], sel[:, 1], sel[:, 2], inten
+    header = ("ply\nformat binary_little_endian 1.0\ncomment cohflash depth export\n"
+              f"element vertex {sel.shape[0]}\nproperty float x\nproperty float y\nproperty float z\n"
+              "property float intensity\nend_header\n").encode()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(header + vertex.tobytes())
+    return path
