@@ -108,7 +108,8 @@ class Capture:
             self._fail(f"attribute format is {f.attrs.get('format')!r}, expected {FORMAT_NAME!r}")
         version = f.attrs.get("format_version")
         if version is None or int(version) != FORMAT_VERSION:
-            self._fail(f"format_version {version!r} is not supported (this reader knows version {FORMAT_VERSION})")
+            shown = version if version is None else np.asarray(version).item()
+            self._fail(f"format_version {shown!r} is not supported (this reader knows version {FORMAT_VERSION})")
         for k in REQUIRED_ATTRS:
             if k not in f.attrs:
                 self._fail(f"required attribute {k!r} is missing")

@@ -24,7 +24,7 @@ from tqdm.auto import tqdm
 from .capture import Capture, CaptureError
 from .constants import SPEED_OF_LIGHT_M_PER_S as C
 from .estimate.coarse import coarse_peak, hann_power, interpolate_peak
-from .estimate.iq import align_carrier_static, align_carrier_tracked, iq_from_frames
+from .estimate.iq import align_carrier_static, derotate, iq_from_frames, track_carrier_drift
 from .estimate.ml import UniformModel, crlb_frequency_only_m, grid_for, refine_ml_uniform
 from .hybrid import Hybrid
 from .modulator import MZM
@@ -78,6 +78,7 @@ class TileConfig(eqx.Module):
     window_bins: int = eqx.field(static=True)
     grid_half_width_m: float = eqx.field(static=True)
     grid_points: int = eqx.field(static=True)
+    grid_candidates: int = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
     dominant_order: int = eqx.field(static=True)
     ambiguity_m: float = eqx.field(static=True)
@@ -104,14 +105,12 @@ def process_tile(cfg: TileConfig, frames, dark):
         finite = jnp.ones(dead.shape, bool)
     i, q = iq_from_frames(frames.astype(real), cfg.iq_weights, cfg.iq_bias, dark)  # (N, P) each
     i, q = jax.lax.optimization_barrier((i, q))  # materialise once; later passes read I/Q, not frames
-    if cfg.tracking:
-        r, qr, _ = align_carrier_tracked(i, q, cfg.track_window)
-        noise_var = jnp.var(qr, axis=0)
-    else:
-        r, noise_var, _ = align_carrier_static(i, q)
-    noise_var = noise_var.astype(jnp.float64)
+    if cfg.tracking:  # remove a slow carrier drift first (turbulence)
+        i, q = derotate(i, q, track_carrier_drift(i, q, cfg.track_window))
+    r, noise_var, _ = align_carrier_static(i, q)
     spec = jnp.fft.rfft(r.T, axis=-1) / math.sqrt(n)  # (P, K), unitary: white noise stays white
     power = hann_power(spec, n)
+    noise_var = noise_var.astype(jnp.float64)
     peak = coarse_peak(power)
     frac_bin = peak.astype(jnp.float64) if cfg.method == "dft" else interpolate_peak(power, peak).astype(jnp.float64)
     m = cfg.model
@@ -123,7 +122,8 @@ def process_tile(cfg: TileConfig, frames, dark):
         k0 = jnp.clip(peak - w // 2, 0, k_count - w)
         windows = jnp.take_along_axis(spec, k0[:, None] + jnp.arange(w), axis=-1).astype(jnp.complex128)
         fit = refine_ml_uniform(m, windows, k0, coarse, noise_var, grid_half_width_m=cfg.grid_half_width_m,
-                                grid_points=cfg.grid_points, max_steps=cfg.max_steps)
+                                grid_points=cfg.grid_points, max_steps=cfg.max_steps,
+                                candidates=cfg.grid_candidates)
         depth, amplitude, sigma = fit.depth_m, jnp.abs(fit.amplitude), fit.sigma_depth_m
         finite_fit = jnp.isfinite(depth) & jnp.isfinite(sigma) & jnp.isfinite(amplitude)
         converged = fit.converged
@@ -143,9 +143,9 @@ def process_tile(cfg: TileConfig, frames, dark):
     snr = n * (amplitude * tone_weight) ** 2 / jnp.maximum(noise_var, 1e-30)
     out_of_range = (depth < 0) | (depth >= cfg.ambiguity_m) | wandered
     status = jnp.full(depth.shape, OK, jnp.int8)
-    for cond, code in ((snr < cfg.snr_threshold, LOW_SNR), (out_of_range, OUT_OF_RANGE),
-                       (~converged, NOT_CONVERGED), (~finite_fit, FIT_FAILED), (dead, DEAD),
-                       (saturated, SATURATED), (~finite, BAD_DATA)):
+    # later conditions win: the status names the most basic reason a pixel is invalid
+    for cond, code in ((out_of_range, OUT_OF_RANGE), (~converged, NOT_CONVERGED), (snr < cfg.snr_threshold, LOW_SNR),
+                       (~finite_fit, FIT_FAILED), (dead, DEAD), (saturated, SATURATED), (~finite, BAD_DATA)):
         status = jnp.where(cond, jnp.int8(code), status)
     safe = lambda a: jnp.where(jnp.isfinite(a), a, 0.0)
     return {"depth_m": safe(depth), "amplitude": safe(amplitude), "sigma_m": safe(sigma),
@@ -196,12 +196,12 @@ def build_config(frequencies_hz, hybrid: Hybrid, modulator: MZM, system_delay_s:
     dominant = int(np.argmax(weights[1:]) + 1)
     bin_depth = C / (2 * n * step)
     ripple = C / (2 * float(np.mean(f)))
-    half, points = grid_for(bin_depth, ripple)
+    half, points, candidates = grid_for(bin_depth, ripple)
     iq_w, iq_b = hybrid.iq_matrix_dn(1.0)
     model = UniformModel(float(f[0]), step, jnp.asarray(weights), float(system_delay_s), num_frames=n,
                          grid_order=dominant)
     return TileConfig(iq_w, iq_b, model, saturation_dn, options.method, options.tracking,
-                      options.track_window_frames, options.window_bins, half, points, options.max_steps,
+                      options.track_window_frames, options.window_bins, half, points, candidates, options.max_steps,
                       dominant, C / (4 * step * dominant), bin_depth, 10 ** (options.snr_threshold_db / 10),
                       options.dtype)
 

@@ -32,7 +32,8 @@ def align_carrier_static(i: Float[Array, "N P"], q: Float[Array, "N P"]):
     """Rotate I/Q by the principal axis of each pixel's (mean-removed) I/Q cloud.
 
     Z = e^{iφ}·(real sequence) + noise lies on a line at angle φ; ½·arg Σ(Z − Z̄)² finds it
-    (up to a sign that the signed amplitude of the fit absorbs). Returns (r, noise_var,
+    up to a sign, taken from the mean term A·w_0 (reliable once the hybrid is calibrated; the
+    fit's signed amplitude absorbs a wrong sign). Returns (r, noise_var,
     phase): r carries the signal; noise_var is the variance of the orthogonal component,
     which holds only noise (and hybrid-error leakage), computed from the same second
     moments without another pass over the data."""
@@ -42,6 +43,8 @@ def align_carrier_static(i: Float[Array, "N P"], q: Float[Array, "N P"]):
     sqq = jnp.sum(q * q, axis=0) / n - mq * mq
     siq = jnp.sum(i * q, axis=0) / n - mi * mq
     phase = 0.5 * jnp.arctan2(2 * siq, sii - sqq)
+    # orient the axis so the mean term A·w_0 (which S keeps) comes out positive
+    phase = jnp.where(mi * jnp.cos(phase) + mq * jnp.sin(phase) < 0, phase + jnp.pi, phase)
     c, s = jnp.cos(phase), jnp.sin(phase)
     noise_var = jnp.maximum(s * s * sii + c * c * sqq - 2 * s * c * siq, 0.0)
     r = i * c + q * s
@@ -60,14 +63,20 @@ def _moving_average(x: Array, window: int) -> Array:
     return (c[hi] - c[lo]) / count
 
 
-def align_carrier_tracked(i: Float[Array, "N P"], q: Float[Array, "N P"], window_frames: int = 101):
-    """Track a slowly drifting carrier phase φ[m] (turbulence) and de-rotate.
+def track_carrier_drift(i: Float[Array, "N P"], q: Float[Array, "N P"], window_frames: int = 101) -> Float[Array, "N P"]:
+    """Slow drift φ[m] of the optical carrier phase (turbulence), per pixel, zero-mean.
 
-    Z² = e^{2iφ}·(non-negative) removes the sign of the tone, so a moving average of
-    (Z − Z̄)² over `window_frames` frames follows 2φ[m]; φ is half its unwrapped phase.
-    Returns (r, q_residual, phase[N, P])."""
-    z = (i - jnp.mean(i, axis=0)) + 1j * (q - jnp.mean(q, axis=0))
-    smooth = _moving_average(z * z, window_frames)
-    phase = 0.5 * jnp.unwrap(jnp.angle(smooth), axis=0)
-    r, qr = _rotate(i, q, phase)
-    return r, qr, phase
+    Z[m] = e^{iφ[m]}·A·S[m] and S[m] = w_0 + 2Σ w_n cos(nψ_m) keeps the sign of its mean
+    term A·w_0, so a moving average of Z over `window_frames` is e^{iφ[m]}·A·w_0·(1 + small)
+    and its unwrapped phase follows φ with noise linear in the data. (Squaring Z — the
+    textbook way to drop a tone's sign — squares the raw noise and slips by π at the paper's
+    SNR; demodulating at the tone uses the weaker w_1.) Requires w_0 > 0 (any bias but
+    θ_b = π/2) and a hybrid without common-mode leakage: calibrate the hybrid first."""
+    z = (i + 1j * q).astype(jnp.complex64 if i.dtype == jnp.float32 else jnp.complex128)
+    phase = jnp.unwrap(jnp.angle(_moving_average(z, window_frames)), axis=0)
+    return phase - jnp.mean(phase, axis=0)
+
+
+def derotate(i: Float[Array, "N P"], q: Float[Array, "N P"], phase: Float[Array, "N P"]):
+    """(I, Q) rotated by −phase per frame and pixel."""
+    return _rotate(i, q, phase)

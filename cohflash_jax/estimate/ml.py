@@ -128,7 +128,7 @@ class FitResult(eqx.Module):
 
 
 def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_depth_m, noise_var,
-               *, grid_half_width_m: float, grid_points: int, max_steps: int) -> FitResult:
+               *, grid_half_width_m: float, grid_points: int, max_steps: int, candidates: int = 1) -> FitResult:
     """ML depth of one pixel from its DFT window (unitary bins k0..k0+W−1)."""
     n = model.num_frames
     tables = window_tables(k0, window.shape[0], n)
@@ -144,10 +144,27 @@ def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_dep
     # depth, with the strongest harmonic only (cheap; the harmonics shift no basin)
     grid_mm = jnp.linspace(-1e3 * grid_half_width_m, 1e3 * grid_half_width_m, grid_points)
     costs = jax.vmap(lambda g: jnp.sum(residual(g, model.grid_order) ** 2))(grid_mm)
-    start = grid_mm[jnp.argmin(costs)]
+    # polish the best `candidates` local minima of the grid and keep the lowest: where the
+    # ripple is narrower than the grid can resolve, the best grid point may sit on the wrong one
+    padded = jnp.concatenate([jnp.array([jnp.inf]), costs, jnp.array([jnp.inf])])
+    local_min = (costs <= padded[:-2]) & (costs <= padded[2:])
+    order = jnp.argsort(jnp.where(local_min, costs, jnp.inf))[:candidates]
+    starts = grid_mm[order]
     solver = _SOLVER()
-    sol = optx.least_squares(lambda y_, _: residual(y_), solver, start, max_steps=max_steps, throw=False)
-    offset_mm = sol.value
+
+    def polish(start):
+        sol = optx.least_squares(lambda y_, _: residual(y_), solver, start, max_steps=max_steps, throw=False)
+        coef, res = _project(_design(model, coarse_depth_m + 1e-3 * sol.value, tables, omega), y)
+        return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"], jnp.sum(res**2), coef[1]
+
+    values, oks, steps, finals, amps = jax.vmap(polish)(starts)
+    finals = jnp.where(jnp.isfinite(finals), finals, jnp.inf)
+    if candidates > 1:
+        # Where ripples are narrower than a bin, (A, τ) and (−A, τ + half a ripple) fit almost
+        # equally: the carrier alignment made A·w_0 > 0, so prefer a positive amplitude.
+        finals = jnp.where((amps >= 0) | jnp.all(amps < 0), finals, jnp.inf)
+    best = jnp.argmin(finals)
+    offset_mm = values[best]
     depth = coarse_depth_m + 1e-3 * offset_mm
     design = _design(model, depth, tables, omega)
     coef, res = _project(design, y)
@@ -162,26 +179,27 @@ def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_dep
     fisher = jac.T @ jac / (0.5 * jnp.maximum(noise_var, 1e-30))
     cov = jnp.linalg.pinv(fisher)
     sigma = jnp.sqrt(jnp.maximum(cov[0, 0], 0.0))
-    converged = sol.result == optx.RESULTS.successful
-    return FitResult(depth, coef[0] * scale, coef[1] * scale, sigma, converged,
-                     sol.stats["num_steps"], jnp.sum(res**2) * scale**2)
+    return FitResult(depth, coef[0] * scale, coef[1] * scale, sigma, oks[best] & jnp.isfinite(finals[best]), steps[best],
+                     jnp.sum(res**2) * scale**2)
 
 
 def refine_ml_uniform(model: UniformModel, windows, k0, coarse_depth_m, noise_var, *,
-                      grid_half_width_m: float, grid_points: int, max_steps: int = 32) -> FitResult:
+                      grid_half_width_m: float, grid_points: int, max_steps: int = 16,
+                      candidates: int = 1) -> FitResult:
     """`refine_one` vmapped over pixels (the leading axis of every array argument)."""
     fn = lambda w, k, d, v: refine_one(model, w, k, d, v, grid_half_width_m=grid_half_width_m,
-                                       grid_points=grid_points, max_steps=max_steps)
+                                       grid_points=grid_points, max_steps=max_steps, candidates=candidates)
     return jax.vmap(fn)(windows, k0, coarse_depth_m, noise_var)
 
 
 def grid_for(sweep_bin_depth_m: float, ripple_m: float, half_width_bins: float = 1.0,
-             points_per_ripple: int = 4, max_points: int = 129) -> tuple[float, int]:
-    """Half-width (m) and odd number of points of the basin-search grid."""
+             points_per_ripple: int = 6, max_points: int = 257) -> tuple[float, int, int]:
+    """Basin search: half-width (m), odd number of grid points, and how many of the grid's
+    best local minima to polish (3 where the ripple is narrower than a bin, else 1)."""
     half = half_width_bins * sweep_bin_depth_m
     spacing = min(sweep_bin_depth_m, ripple_m) / points_per_ripple
     points = int(min(max_points, 2 * math.ceil(half / spacing) + 1))
-    return half, points
+    return half, points, (3 if ripple_m < sweep_bin_depth_m else 1)
 
 
 def crlb_phase_locked_m(frequencies_hz, tone_amplitude, noise_sigma) -> float:
@@ -195,7 +213,7 @@ def crlb_phase_locked_m(frequencies_hz, tone_amplitude, noise_sigma) -> float:
 
 def crlb_frequency_only_m(num_frames: int, step_hz: float, tone_amplitude, noise_sigma, order: int = 1):
     """Closed-form CRLB (m) of depth from the tone's frequency alone (real sinusoid,
-    unknown amplitude and phase): var(ω) = 12σ²/(a²·N(N²−1)), ω in rad/frame."""
+    unknown amplitude and phase; Kay, Example 3.14): var(ω) = 24σ²/(a²·N(N²−1)), ω in rad/frame."""
     n = num_frames
-    var_omega = 12 * noise_sigma**2 / (tone_amplitude**2 * n * (n**2 - 1))
+    var_omega = 24 * noise_sigma**2 / (tone_amplitude**2 * n * (n**2 - 1))
     return jnp.sqrt(var_omega) / (2 * np.pi * order * step_hz) * C / 2

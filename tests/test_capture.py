@@ -1,0 +1,146 @@
+"""Capture format v1: the CLI writes valid files; the reader rejects bad ones clearly."""
+
+import h5py
+import numpy as np
+import pytest
+
+import cohflash_jax as cf
+from cohflash_jax.capture import Capture, CaptureError, write_capture
+from cohflash_jax.cli import main
+from cohflash_jax.constants import SPEED_OF_LIGHT_M_PER_S as C
+
+
+@pytest.fixture(scope="module")
+def staircase_capture(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cap") / "x.h5"
+    assert main(["simulate", "staircase", "--size", "64x64", "--steps", "512", "--out", str(path), "--quiet"]) == 0
+    return path
+
+
+def test_simulate_cli_writes_a_valid_v1_capture(staircase_capture):
+    with h5py.File(staircase_capture) as f:
+        assert f.attrs["format"] == "cohflash-capture" and int(f.attrs["format_version"]) == 1
+        for k in ("exposure_s", "frame_rate_hz", "wavelength_m"):
+            assert float(f.attrs[k]) > 0
+        assert f["frames"].shape == (4, 512, 64, 64) and f["frames"].dtype == np.uint16
+        assert f["frequencies_hz"].dtype == np.float64 and f["frequencies_hz"].shape == (512,)
+        np.testing.assert_allclose(f["hybrid_phases_rad"][()], [0, np.pi / 2, np.pi, 1.5 * np.pi])
+        assert f["truth/depth_m"].shape == (64, 64) and f["truth/depth_m"].dtype == np.float32
+    assert not list(staircase_capture.parent.glob(".*tmp*"))  # no temporary file left
+
+
+def test_independent_dft_peak_gives_true_depth_within_one_bin(staircase_capture):
+    """Plain NumPy, written from DESIGN.md §1 only: I = V0 − V2, Q = V3 − V1, principal
+    axis, rFFT peak → depth = k/(N·Δf)·c/2."""
+    with Capture(staircase_capture) as cap:
+        frames = cap.read_tile(slice(None)).astype(np.float64)
+        freqs = cap.frequencies_hz
+        truth = cap.truth("depth_m")
+    n = frames.shape[1]
+    z = (frames[0] - frames[2]) + 1j * (frames[3] - frames[1])
+    z = z - z.mean(axis=0)
+    axis = np.angle(np.sum(z**2, axis=0)) / 2
+    r = np.real(z * np.exp(-1j * axis))
+    k = np.argmax(np.abs(np.fft.rfft(r, axis=0))[1:], axis=0) + 1
+    step = freqs[1] - freqs[0]
+    depth = k / (n * step) * C / 2
+    bin_m = C / (2 * n * step)
+    within = np.abs(depth - truth) <= bin_m
+    # pixels next to a depth edge hold two returns (mixed_pixels is on), which can cancel
+    # each other: their "true depth" is not single-valued, so they are judged separately
+    edge = np.zeros(truth.shape, bool)
+    for axis in (0, 1):
+        step_edge = np.abs(np.diff(truth, axis=axis)) > 0
+        sl_a = [slice(None)] * 2
+        sl_b = [slice(None)] * 2
+        sl_a[axis], sl_b[axis] = slice(1, None), slice(None, -1)
+        edge[tuple(sl_a)] |= step_edge
+        edge[tuple(sl_b)] |= step_edge
+    assert np.all(within[~edge])
+    assert within.mean() > 0.99
+
+
+def test_read_tile_reads_the_requested_pixels(staircase_capture):
+    with Capture(staircase_capture) as cap:
+        tile = cap.read_tile(slice(10, 14), slice(5, 8))
+        assert tile.shape == (4, 512, 4, 3)
+        np.testing.assert_array_equal(tile, cap.frames[:, :, 10:14, 5:8])
+
+
+def _write(path, **over):
+    n, h, w = 8, 2, 3
+    f = h5py.File(path, "w")
+    f.attrs.update({"format": "cohflash-capture", "format_version": 1, "exposure_s": 4e-3, "frame_rate_hz": 150.0,
+                    "wavelength_m": 1.55e-6})
+    data = {"frames": np.zeros((4, n, h, w), np.uint16), "frequencies_hz": 1e8 + 2e6 * np.arange(n),
+            "hybrid_phases_rad": np.array([0, np.pi / 2, np.pi, 1.5 * np.pi])}
+    for k, v in over.items():
+        if k.startswith("attr_"):
+            if v is None:
+                del f.attrs[k[5:]]
+            else:
+                f.attrs[k[5:]] = v
+        else:
+            data[k] = v
+    for k, v in data.items():
+        if v is not None:
+            f.create_dataset(k, data=v)
+    f.close()
+    return path
+
+
+@pytest.mark.parametrize("over,match", [
+    ({"attr_format": "something-else"}, "format"),
+    ({"attr_format_version": 2}, "format_version 2"),
+    ({"attr_exposure_s": None}, "exposure_s"),
+    ({"attr_frame_rate_hz": -1.0}, "frame_rate_hz"),
+    ({"frames": np.zeros((3, 8, 2, 3), np.uint16)}, r"shape \(4, N, H, W\)"),
+    ({"frames": np.zeros((4, 8, 2, 3), np.int32)}, "dtype"),
+    ({"frames": None}, "frames"),
+    ({"frequencies_hz": np.arange(8.0)[::-1].copy()}, "increasing"),
+    ({"frequencies_hz": np.array([1, 2, 3, np.nan, 5, 6, 7, 8.0])}, "NaN"),
+    ({"frequencies_hz": np.arange(7.0)}, "match frames"),
+    ({"frequencies_hz": np.arange(8, dtype=np.float32)}, "float64"),
+    ({"hybrid_phases_rad": np.zeros(3)}, "hybrid_phases_rad"),
+    ({"dark": np.zeros((4, 5, 5), np.float32)}, "dark"),
+])
+def test_reader_rejects_malformed_files_naming_the_problem(tmp_path, over, match):
+    path = _write(tmp_path / "bad.h5", **over)
+    with pytest.raises(CaptureError, match=match):
+        Capture(path)
+
+
+def test_reader_rejects_missing_and_non_hdf5_files(tmp_path):
+    with pytest.raises(CaptureError, match="not found"):
+        Capture(tmp_path / "nope.h5")
+    junk = tmp_path / "junk.h5"
+    junk.write_bytes(b"definitely not hdf5")
+    with pytest.raises(CaptureError, match="not a readable HDF5"):
+        Capture(junk)
+
+
+def test_interrupted_write_keeps_the_old_file_and_leaves_no_partial(tmp_path):
+    path = tmp_path / "cap.h5"
+    path.write_bytes(b"previous result")
+
+    def chunks():
+        yield 0, 4, np.zeros((4, 4, 2, 2), np.uint16)
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        write_capture(path, chunks(), frequencies_hz=1e8 + 2e6 * np.arange(8), height=2, width=2, dtype=np.uint16,
+                      attrs={"exposure_s": 4e-3, "frame_rate_hz": 150.0, "wavelength_m": 1.55e-6}, progress=False)
+    assert path.read_bytes() == b"previous result"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cap.h5"]
+
+
+def test_simulate_cli_rejects_bad_arguments(tmp_path, capsys):
+    assert main(["simulate", "staircase", "--effects", "fog", "--out", str(tmp_path / "a.h5")]) == 2
+    assert "known effects" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["simulate", "staircase", "--steps", "1", "--out", str(tmp_path / "a.h5")])
+    with pytest.raises(SystemExit):
+        main(["simulate", "staircase", "--size", "64by64", "--out", str(tmp_path / "a.h5")])
+    assert main(["simulate", "staircase", "--out", str(tmp_path / "missing" / "a.h5"), "--steps", "4",
+                 "--size", "2x2", "--quiet"]) == 2
+    assert not (tmp_path / "a.h5").exists()

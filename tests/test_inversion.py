@@ -1,0 +1,224 @@
+"""Depth inversion against independent truth: noiseless exactness, CRLB, threshold,
+harmonics, turbulence, precision paths, bad pixels, and the CLI end to end."""
+
+import h5py
+import jax
+import numpy as np
+import pytest
+
+import cohflash_jax as cf
+from cohflash_jax.capture import Capture
+from cohflash_jax.cli import main
+from cohflash_jax.constants import SPEED_OF_LIGHT_M_PER_S as C
+from cohflash_jax.estimate.ml import crlb_frequency_only_m, crlb_phase_locked_m
+from cohflash_jax.reconstruct import BAD_DATA, DEAD, LOW_SNR, SATURATED, ReconstructOptions, reconstruct_array
+
+from .conftest import N_FRAMES, depth_scene
+
+OPTS = {m: ReconstructOptions(method=m, progress=False) for m in ("dft", "interp", "ml")}
+
+
+def _reconstruct(frames, instrument, method="ml", **kw):
+    options = kw.pop("options", OPTS[method])
+    return reconstruct_array(frames, instrument.sweep.frequencies_hz, options, **kw)
+
+
+def _depth_at_cycles(cycles_per_frame, step_hz):
+    return np.asarray(cycles_per_frame) / step_hz * C / 2
+
+
+def test_noiseless_ml_is_exact_at_every_hard_depth(paper_instrument, simulate_pixels):
+    step = paper_instrument.sweep.step_hz
+    n = N_FRAMES
+    hard = [
+        _depth_at_cycles(700 / n, step),  # bin centre
+        _depth_at_cycles(700.5 / n, step),  # bin edge
+        _depth_at_cycles(1 / 3, step),  # 2nd harmonic aliases onto the fundamental
+        _depth_at_cycles(1 / 4, step),  # 3rd harmonic aliases onto the fundamental
+        0.05, 0.12,  # near 0: the fundamental merges with DC
+        paper_instrument.sweep.ambiguity_m - 0.006,  # ½ cycle per frame less a quarter bin
+        30.5,
+    ]
+    rng = np.random.default_rng(0)
+    depths = np.concatenate([hard, rng.uniform(0.2, 37.9, 64 - len(hard))])
+    frames = simulate_pixels(depth_scene(depths, effects=("sidebands",)))
+    out = _reconstruct(frames, paper_instrument)
+    err = out["depth_m"].ravel() - depths
+    assert np.all(out["valid"])
+    assert np.max(np.abs(err)) < 1e-6, depths[np.argmax(np.abs(err))]
+    # the plain DFT is right to half a bin and no better; interpolation to a few % of a bin
+    bin_m = paper_instrument.sweep.bin_depth_m
+    dft = _reconstruct(frames, paper_instrument, "dft")["depth_m"].ravel() - depths
+    interp = _reconstruct(frames, paper_instrument, "interp")["depth_m"].ravel() - depths
+    # near DC and near ½ cycle/frame the tone's mirror image overlaps it (a few bins): the
+    # frequency-only estimates are allowed to be poor there
+    far = (depths > 0.5) & (depths < paper_instrument.sweep.ambiguity_m - 0.5)
+    assert np.max(np.abs(dft[far])) <= 0.5 * bin_m + 1e-9
+    assert np.max(np.abs(interp[far])) < 0.1 * bin_m
+    assert np.max(np.abs(dft)) > 0.2 * bin_m  # the test can tell DFT from ML
+
+
+def _noise_sigma_and_amplitude(instrument, reflectance, quantization=True):
+    """Independent closed-form per-sample noise σ and tone amplitude a of r = Re(Z e^{-iφ}),
+    in electrons, from the instrument's settings alone (DESIGN.md §1)."""
+    s, link, mzm = instrument.sensor, instrument.link, instrument.modulator
+    n_ref = float(s.electrons(link.reference_power_per_pixel_w))
+    n_echo = float(s.electrons(link.echo_power_w(30.5, reflectance)))
+    s0 = float(mzm.mean_transmission())
+    w1 = float(mzm.weights()[1])
+    port = 0.25 * (n_ref + n_echo) * s0 + float(s.dark_electrons)
+    q = (1 / float(s.dn_per_electron)) ** 2 / 12 if quantization else 0.0
+    var_i = 2 * (port + float(s.read_noise_e) ** 2 + q)  # I = V0 − V2: two ports
+    return np.sqrt(var_i), np.sqrt(n_ref * n_echo) * 2 * w1
+
+
+@pytest.fixture(scope="module")
+def planar_monte_carlo(paper_instrument, noise_effects):
+    """4 seeds × 64 pixels of the planar target at the paper's link budget."""
+    scene = cf.planar(effects=noise_effects)
+    frames = [cf.simulate(scene, paper_instrument, 8, 8, jax.random.key(100 + s)) for s in range(4)]
+    return frames
+
+
+def test_ml_reaches_the_crlb_at_the_paper_link_budget(paper_instrument, planar_monte_carlo):
+    sigma, amp = _noise_sigma_and_amplitude(paper_instrument, 0.5)
+    crlb = crlb_phase_locked_m(paper_instrument.sweep.frequencies_hz, amp, sigma)
+    outs = [_reconstruct(f, paper_instrument) for f in planar_monte_carlo]
+    err = np.concatenate([o["depth_m"].ravel() for o in outs]) - 30.5
+    predicted = np.concatenate([o["sigma_m"].ravel() for o in outs])
+    assert all(o["valid"].all() for o in outs)
+    assert np.std(err) == pytest.approx(crlb, rel=0.2)
+    assert abs(np.mean(err)) < 4 * crlb / np.sqrt(err.size)
+    assert np.median(predicted) == pytest.approx(crlb, rel=0.1)  # the reported σ is the CRLB
+
+
+def test_dft_and_interp_are_checked_against_truth_too(paper_instrument, planar_monte_carlo):
+    sigma, amp = _noise_sigma_and_amplitude(paper_instrument, 0.5)
+    freq_only = crlb_frequency_only_m(N_FRAMES, paper_instrument.sweep.step_hz, amp, sigma)
+    phase_locked = crlb_phase_locked_m(paper_instrument.sweep.frequencies_hz, amp, sigma)
+    assert 1.8 < freq_only / phase_locked < 2.2  # DESIGN.md §1: ≈ 2 for 0.1–6 GHz
+    interp = np.concatenate([_reconstruct(f, paper_instrument, "interp")["depth_m"].ravel()
+                             for f in planar_monte_carlo]) - 30.5
+    dft = np.concatenate([_reconstruct(f, paper_instrument, "dft")["depth_m"].ravel()
+                          for f in planar_monte_carlo]) - 30.5
+    bin_m = paper_instrument.sweep.bin_depth_m
+    assert np.max(np.abs(dft)) <= 0.5 * bin_m + 5 * freq_only
+    assert np.std(interp) < 2.5 * freq_only and abs(np.mean(interp)) < 0.05 * bin_m
+
+
+def test_below_threshold_pixels_are_flagged_not_wild(paper_instrument, noise_effects):
+    frames = [cf.simulate(cf.planar(reflectance=rho, effects=noise_effects), paper_instrument, 8, 8,
+                          jax.random.key(7)) for rho in (0.02, 0.005)]
+    for f, max_valid in zip(frames, (0.7, 0.1)):
+        out = _reconstruct(f, paper_instrument)
+        valid = out["valid"]
+        assert valid.mean() <= max_valid
+        assert np.all(out["fit_status"][~valid] != 0)
+        err = np.abs(out["depth_m"] - 30.5)
+        assert np.all(err[valid] < 6 * out["sigma_m"][valid])  # nothing wild is marked valid
+        for k in ("depth_m", "sigma_m", "amplitude", "snr"):
+            assert np.all(np.isfinite(out[k]))
+
+
+def test_zero_echo_is_flagged_everywhere_without_nan(paper_instrument, noise_effects, simulate_pixels):
+    frames = simulate_pixels(depth_scene([30.5], reflectance=0.0, effects=noise_effects))
+    out = _reconstruct(frames, paper_instrument)
+    assert not out["valid"].any()
+    assert np.all(out["fit_status"] == LOW_SNR)
+    assert all(np.all(np.isfinite(out[k])) for k in ("depth_m", "sigma_m", "amplitude", "snr"))
+
+
+def test_sidebands_leave_no_bias_even_where_harmonics_alias_onto_the_tone(paper_instrument, noise_effects,
+                                                                          simulate_pixels):
+    step = paper_instrument.sweep.step_hz
+    depths = [_depth_at_cycles(1 / 3, step) + 0.003, _depth_at_cycles(1 / 4, step) + 0.003]
+    for d in depths:
+        errs, sig = [], []
+        for seed in range(2):
+            frames = simulate_pixels(depth_scene([d], effects=noise_effects + ("sidebands",)), seed=seed)
+            out = _reconstruct(frames, paper_instrument)
+            assert out["valid"].all()
+            errs.append(out["depth_m"].ravel() - d)
+            sig.append(out["sigma_m"].ravel())
+        e = np.concatenate(errs)
+        assert abs(e.mean()) < 4 * np.median(np.concatenate(sig)) / np.sqrt(e.size)
+
+
+def test_turbulence_with_tracking_keeps_precision_within_10_percent(paper_instrument, noise_effects):
+    scene_static = cf.planar(effects=noise_effects)
+    scene_turb = cf.planar(effects=noise_effects + ("turbulence",))
+    tracked = ReconstructOptions(method="ml", tracking=True, progress=False)
+    static_err, turb_err, untracked_err = [], [], []
+    for seed in range(3):  # the same seeds: the noise draws are shared, only the drift differs
+        key = jax.random.key(200 + seed)
+        f_static = cf.simulate(scene_static, paper_instrument, 8, 8, key)
+        f_turb = cf.simulate(scene_turb, paper_instrument, 8, 8, key)
+        static_err.append(_reconstruct(f_static, paper_instrument)["depth_m"].ravel() - 30.5)
+        out = _reconstruct(f_turb, paper_instrument, options=tracked)
+        assert out["valid"].all()
+        turb_err.append(out["depth_m"].ravel() - 30.5)
+        untracked_err.append(_reconstruct(f_turb, paper_instrument)["depth_m"].ravel() - 30.5)
+    s_static, s_turb = np.std(np.concatenate(static_err)), np.std(np.concatenate(turb_err))
+    assert s_turb < 1.1 * s_static
+    assert np.std(np.concatenate(untracked_err)) > 1.5 * s_static  # tracking is what saves it
+
+
+def test_float32_and_float64_paths_agree(paper_instrument, planar_monte_carlo):
+    f = planar_monte_carlo[0]
+    a = _reconstruct(f, paper_instrument)
+    b = _reconstruct(f, paper_instrument, options=ReconstructOptions(method="ml", dtype="float64", progress=False))
+    assert np.max(np.abs(a["depth_m"] - b["depth_m"])) < 0.01 * np.median(a["sigma_m"])
+    np.testing.assert_array_equal(a["valid"], b["valid"])
+
+
+def test_bad_pixels_are_flagged_and_the_batch_finishes(paper_instrument, planar_monte_carlo):
+    f = planar_monte_carlo[1].astype(np.float32)
+    f[2, 100, 0, 0] = np.nan
+    f[1, 5, 0, 1] = np.inf
+    f[0, 10, 0, 2] = 16383.0  # ADC maximum in one frame
+    f[3, :, 0, 3] = 512.0  # dead pixel on one CCD
+    out = _reconstruct(f, paper_instrument, saturation_dn=16383.0)
+    assert out["fit_status"][0, 0] == BAD_DATA and out["fit_status"][0, 1] == BAD_DATA
+    assert out["fit_status"][0, 2] == SATURATED and out["fit_status"][0, 3] == DEAD
+    assert not out["valid"][0, :4].any() and out["valid"][1:].all()
+    assert all(np.all(np.isfinite(out[k])) for k in ("depth_m", "sigma_m", "amplitude", "snr"))
+
+
+def test_ml_finds_the_right_ripple_when_ripples_are_narrower_than_a_bin(noise_effects):
+    """24–30 GHz: the likelihood ripple (c/2f̄ ≈ 5.6 mm) is much narrower than a DFT bin
+    (25 mm); the basin search must still land on the right one (no cycle slips)."""
+    inst = cf.Instrument(sweep=cf.FrequencySweep.uniform(24e9, 1.97e6, N_FRAMES))
+    assert inst.sweep.ripple_period_m < 0.25 * inst.sweep.bin_depth_m
+    frames = cf.simulate(cf.planar(effects=noise_effects), inst, 8, 8, jax.random.key(3))
+    out = _reconstruct(frames, inst)
+    err = out["depth_m"] - 30.5
+    assert out["valid"].all()
+    assert np.max(np.abs(err)) < 0.25 * inst.sweep.ripple_period_m
+
+
+def test_reconstruct_cli_end_to_end(tmp_path, capsys):
+    cap = tmp_path / "p.h5"
+    assert main(["simulate", "planar", "--size", "8x8", "--steps", "3000", "--out", str(cap), "--quiet"]) == 0
+    out = tmp_path / "depth.h5"
+    rc = main(["reconstruct", str(cap), "--out", str(out), "--png", str(tmp_path / "d.png"), "--ply",
+               str(tmp_path / "d.ply"), "--tiff", str(tmp_path / "d.tiff"), "--quiet", "--tile-rows", "8"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "ambiguity interval [0, 38.045) m" in text
+    with h5py.File(out) as f:
+        assert f.attrs["format"] == "cohflash-depth" and f.attrs["method"] == "ml"
+        assert abs(float(f.attrs["ambiguity_m"]) - C / (4 * 1.97e6)) < 1e-9
+        for k in ("depth_m", "amplitude", "valid", "sigma_m", "snr", "fit_status"):
+            assert f[k].shape == (8, 8)
+        assert "cohflash_version" in f.attrs["provenance"]
+        assert np.all(np.abs(f["depth_m"][()] - 30.5) < 5 * f["sigma_m"][()])
+    assert (tmp_path / "d.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    ply = (tmp_path / "d.ply").read_bytes()
+    assert ply.startswith(b"ply\nformat binary_little_endian 1.0")
+    assert (tmp_path / "d.tiff").stat().st_size > 8 * 8 * 4
+    with Capture(cap) as c:
+        assert c.shape == (3000, 8, 8)
+    # bad input: clear error, exit code 2, nothing written
+    assert main(["reconstruct", str(tmp_path / "none.h5"), "--out", str(tmp_path / "x.h5")]) == 2
+    assert "not found" in capsys.readouterr().err
+    assert not (tmp_path / "x.h5").exists()
