@@ -157,7 +157,7 @@ class ReconstructOptions:
     method: str = "ml"
     tracking: bool = False
     track_window_frames: int = 101
-    tile_rows: int = 16
+    tile_rows: int = 32  # = the capture writer's chunk rows: each chunk is read once
     window_bins: int = 17
     max_steps: int = 16
     snr_threshold_db: float = DEFAULT_SNR_THRESHOLD_DB

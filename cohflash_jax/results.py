@@ -52,9 +52,11 @@ def read_depth(path) -> tuple[dict, dict]:
         return {k: f[k][()] for k in f.keys()}, dict(f.attrs)
 
 
-def save_preview_png(path, depth_m, valid, title: str = "", reference_m: float | None = None) -> Path:
-    """Colour-mapped depth in mm relative to a reference (median of valid pixels), colour
-    bar in mm, invalid pixels grey."""
+def save_preview_png(path, depth_m, valid, title: str = "", reference_m: float | None = None,
+                     range_mm: tuple[float, float] | None = None) -> Path:
+    """Colour-mapped depth in mm relative to a reference (default: median of valid pixels),
+    colour bar in mm, invalid pixels grey. `range_mm` fixes the colour limits (default: 1st
+    to 99th percentile); values outside saturate, as the colour bar's arrows show."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -65,13 +67,12 @@ def save_preview_png(path, depth_m, valid, title: str = "", reference_m: float |
     ref = float(np.median(depth[valid])) if reference_m is None and valid.any() else (reference_m or 0.0)
     rel_mm = np.where(valid, (depth - ref) * 1e3, np.nan)
     finite = rel_mm[np.isfinite(rel_mm)]
-    lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (-1, 1))
-    cmap = plt.get_cmap("turbo").copy()
-    cmap.set_bad("0.6")
+    lo, hi = range_mm if range_mm is not None else (np.percentile(finite, [1, 99]) if finite.size else (-1, 1))
+    cmap = plt.get_cmap("turbo").with_extremes(bad="0.6")
     h, w = depth.shape
     fig, ax = plt.subplots(figsize=(6.4, 6.4 * h / w + 0.6), dpi=110)
     im = ax.imshow(rel_mm, cmap=cmap, vmin=lo, vmax=hi if hi > lo else lo + 1, interpolation="nearest")
-    cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04)
+    cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, extend="both")
     cb.set_label(f"depth − {ref:.4f} m  (mm)")
     ax.set_title(title or f"depth ({valid.mean():.1%} valid; grey = invalid)")
     ax.set_xlabel("column")

@@ -23,13 +23,16 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Complex, Float, Int
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S
 
 C = SPEED_OF_LIGHT_M_PER_S
-_SOLVER = lambda: optx.GaussNewton(rtol=1e-7, atol=1e-7)
+# Gauss–Newton on one unknown (the basin search has already placed it in the right basin);
+# normal equations with a Cholesky solve: a 1×1 system, not a QR of the W×1 Jacobian.
+_SOLVER = lambda: optx.GaussNewton(rtol=1e-7, atol=1e-7, linear_solver=lx.Normal(lx.Cholesky()))
 
 
 class WindowTables(eqx.Module):
@@ -110,10 +113,15 @@ def _design(model: UniformModel, depth_m, tables, omega, max_order=None):
 
 
 def _project(design, y):
-    """Least-squares (c, A) for a 2-column real design, ridge-stabilised for zero signal."""
-    gram = design.T @ design
-    gram = gram + 1e-12 * (jnp.trace(gram) + 1e-300) * jnp.eye(2)
-    coef = jnp.linalg.solve(gram, design.T @ y)
+    """Least-squares (c, A) for a 2-column real design (explicit 2×2 normal equations,
+    ridge-stabilised so a vanishing tone column gives A = 0, not NaN)."""
+    a, b = design[:, 0], design[:, 1]
+    g00, g01, g11 = a @ a, a @ b, b @ b
+    ridge = 1e-12 * (g00 + g11) + 1e-300
+    g00, g11 = g00 + ridge, g11 + ridge
+    r0, r1 = a @ y, b @ y
+    det = g00 * g11 - g01 * g01
+    coef = jnp.stack([(g11 * r0 - g01 * r1) / det, (g00 * r1 - g01 * r0) / det])
     return coef, y - design @ coef
 
 
@@ -177,8 +185,12 @@ def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_dep
 
     jac = jax.jacfwd(model_vec)(params)
     fisher = jac.T @ jac / (0.5 * jnp.maximum(noise_var, 1e-30))
-    cov = jnp.linalg.pinv(fisher)
-    sigma = jnp.sqrt(jnp.maximum(cov[0, 0], 0.0))
+    # σ² of depth = [F⁻¹]₀₀ = 1/(F₀₀ − F₀ᵣ F_rr⁻¹ F_r0): Schur complement with an explicit 2×2 inverse
+    frr = fisher[1:, 1:] + 1e-12 * jnp.trace(fisher[1:, 1:]) * jnp.eye(2) + 1e-300 * jnp.eye(2)
+    det = frr[0, 0] * frr[1, 1] - frr[0, 1] * frr[1, 0]
+    inv = jnp.array([[frr[1, 1], -frr[0, 1]], [-frr[1, 0], frr[0, 0]]]) / det
+    schur = fisher[0, 0] - fisher[0, 1:] @ inv @ fisher[1:, 0]
+    sigma = jnp.where(schur > 0, 1 / jnp.sqrt(jnp.maximum(schur, 1e-300)), jnp.inf)
     return FitResult(depth, coef[0] * scale, coef[1] * scale, sigma, oks[best] & jnp.isfinite(finals[best]), steps[best],
                      jnp.sum(res**2) * scale**2)
 

@@ -1,0 +1,138 @@
+"""Benchmark: reconstruct a full 320×256×3000 capture read from its file.
+
+Prints, for `dft` and `ml`, end-to-end seconds (file in, depth file out; cold = first call in
+a fresh process including compilation, warm = a second call), pixels per second and peak
+memory; and two references over the same I/Q data: a plain NumPy pass (np.fft.rfft +
+argmax) and a bare jitted JAX pass (jnp.fft.rfft + argmax). Also the paper's 10 Hz mode
+(35 frames, full frame) per depth map after compilation. Printed, never asserted.
+
+    python benchmarks/bench_reconstruct.py [--capture FILE] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def child_reconstruct(capture: str, method: str, out: str) -> dict:
+    from cohflash_jax.cli import run_reconstruct
+    from cohflash_jax.reconstruct import ReconstructOptions
+
+    times = []
+    for _ in range(2):
+        t0 = time.perf_counter()
+        outputs, _ = run_reconstruct(capture, out, ReconstructOptions(method=method, progress=False))
+        times.append(time.perf_counter() - t0)
+    return {"cold": times[0], "warm": times[1], "valid": float(outputs["valid"].mean()),
+            "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
+
+
+def child_references(capture: str) -> dict:
+    import h5py
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    t0 = time.perf_counter()
+    with h5py.File(capture) as f:
+        frames = f["frames"]
+        n, h, w = frames.shape[1:]
+        i = np.empty((n, h * w), np.float32)
+        for r0 in range(0, h, 32):  # I = V0 − V2, read in row tiles
+            block = frames[:, :, r0:r0 + 32].astype(np.float32)
+            i[:, r0 * w:(r0 + block.shape[2]) * w] = (block[0] - block[2]).reshape(n, -1)
+    t_read = time.perf_counter() - t0
+    res = {"read_and_iq_s": t_read}
+    numpy_times = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        np.argmax(np.abs(np.fft.rfft(i, axis=0)), axis=0)
+        numpy_times.append(time.perf_counter() - t0)
+    res["numpy_s"] = statistics.median(numpy_times)
+    x = jnp.asarray(i)
+    fn = jax.jit(lambda a: jnp.argmax(jnp.abs(jnp.fft.rfft(a, axis=0)), axis=0))
+    fn(x).block_until_ready()
+    jax_times = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        fn(x).block_until_ready()
+        jax_times.append(time.perf_counter() - t0)
+    res["jax_s"] = statistics.median(jax_times)
+    return res
+
+
+def child_ten_hz() -> dict:
+    import jax
+    import numpy as np
+
+    import cohflash_jax as cf
+    from cohflash_jax.reconstruct import ReconstructOptions, build_config, process_tile
+    from cohflash_jax.hybrid import Hybrid
+    from cohflash_jax.modulator import MZM
+
+    inst = cf.Instrument(sweep=cf.FrequencySweep.uniform(0.1e9, 1.97e6, 35), frame_rate_hz=350.0,
+                         sensor=cf.Sensor(exposure_s=2e-3))
+    frames = cf.simulate(cf.planar(effects=("shot_noise", "read_noise", "quantization")), inst, 256, 320,
+                         jax.random.key(0))
+    x = jax.numpy.asarray(frames.reshape(4, 35, -1))
+    cfg = build_config(inst.sweep.frequencies_hz, Hybrid(), MZM(), 0.0, 16383.0, ReconstructOptions(method="ml"))
+    jax.block_until_ready(process_tile(cfg, x, None))
+    times = []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        jax.block_until_ready(process_tile(cfg, x, None))
+        times.append(time.perf_counter() - t0)
+    return {"ten_hz_ms": 1e3 * statistics.median(times)}
+
+
+def run_child(*args) -> dict:
+    res = subprocess.run([sys.executable, __file__, "--child", *args], check=True, capture_output=True, text=True)
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("--capture", help="full-size capture (default: simulate the traffic scene)")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--child", nargs="*", help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.child is not None:
+        kind, *rest = args.child
+        out = {"reconstruct": lambda: child_reconstruct(*rest), "references": lambda: child_references(*rest),
+               "ten_hz": child_ten_hz}[kind]()
+        print(json.dumps(out))
+        return
+    folder = Path(tempfile.mkdtemp(prefix="cohflash-bench-"))
+    capture = args.capture
+    if capture is None:
+        capture = str(folder / "traffic.h5")
+        subprocess.run([sys.executable, "-m", "cohflash_jax.cli", "simulate", "traffic", "--out", capture,
+                        "--effects", "shot_noise,read_noise,quantization,sidebands", "--quiet"], check=True)
+    pixels = 256 * 320
+    ref = run_child("references", capture)
+    print(f"references over the same I data: read+I/Q {ref['read_and_iq_s']:.2f} s; NumPy rfft+argmax "
+          f"{ref['numpy_s']:.2f} s; bare JAX rfft+argmax {ref['jax_s']:.2f} s")
+    for method in ("dft", "ml"):
+        runs = [run_child("reconstruct", capture, method, str(folder / f"depth-{method}.h5"))
+                for _ in range(args.repeats)]
+        warm = statistics.median(r["warm"] for r in runs)
+        cold = statistics.median(r["cold"] for r in runs)
+        rss = statistics.median(r["peak_rss_gb"] for r in runs)
+        print(f"{method:4s} end to end (file in, depth file out): warm median {warm:.2f} s "
+              f"({pixels / warm:,.0f} px/s), cold {cold:.2f} s incl. compilation; peak RSS {rss:.2f} GB; "
+              f"{runs[0]['valid']:.1%} valid; vs NumPy pass {ref['numpy_s'] / warm:.2f}× faster, "
+              f"vs bare JAX pass {warm / ref['jax_s']:.2f}× slower")
+    ten = run_child("ten_hz")
+    print(f"10 Hz mode (35 frames, 256×320, ml) after compilation: {ten['ten_hz_ms']:.0f} ms per depth map")
+
+
+if __name__ == "__main__":
+    main()
