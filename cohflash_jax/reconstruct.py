@@ -33,7 +33,7 @@ METHODS = ("dft", "interp", "ml")
 STATUS = {0: "ok", 1: "low_snr", 2: "not_converged", 3: "fit_failed", 4: "bad_data (NaN/inf)",
           5: "saturated", 6: "dead (constant)", 7: "out_of_range"}
 OK, LOW_SNR, NOT_CONVERGED, FIT_FAILED, BAD_DATA, SATURATED, DEAD, OUT_OF_RANGE = range(8)
-DEFAULT_SNR_THRESHOLD_DB = 13.0
+DEFAULT_SNR_THRESHOLD_DB = 14.0
 
 
 @dataclasses.dataclass(frozen=True)

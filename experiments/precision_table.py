@@ -19,7 +19,7 @@ import numpy as np
 
 import cohflash_jax as cf
 from cohflash_jax.estimate.ml import crlb_frequency_only_m, crlb_phase_locked_m
-from cohflash_jax.reconstruct import ReconstructOptions, reconstruct_array
+from cohflash_jax.reconstruct import DEFAULT_SNR_THRESHOLD_DB, ReconstructOptions, reconstruct_array
 
 NOISE = ("shot_noise", "read_noise", "dark_current", "quantization")
 
@@ -92,7 +92,8 @@ def run(out: Path, seeds: int, size: int = 16):
     x = [r["median_snr_db"] for r in trows]
     ax.plot(x, [r["x_crlb"] for r in trows], "o-", label="ML inlier std / CRLB")
     ax.plot(x, [r["outlier_fraction"] for r in trows], "s-", label="outlier fraction (|err| > 5 CRLB)")
-    ax.axvline(13.0, color="0.5", ls="--", label="default validity threshold 13 dB")
+    ax.axvline(DEFAULT_SNR_THRESHOLD_DB, color="0.5", ls="--",
+               label=f"default validity threshold {DEFAULT_SNR_THRESHOLD_DB:g} dB")
     ax.set_xlabel("measured peak-bin SNR (dB)")
     ax.set_ylim(0, 2)
     ax.legend()
