@@ -144,3 +144,28 @@ def test_simulate_cli_rejects_bad_arguments(tmp_path, capsys):
     assert main(["simulate", "staircase", "--out", str(tmp_path / "missing" / "a.h5"), "--steps", "4",
                  "--size", "2x2", "--quiet"]) == 2
     assert not (tmp_path / "a.h5").exists()
+
+
+def test_scene_from_image_files_and_arrays(tmp_path):
+    import cv2
+
+    depth_mm = np.full((20, 30), 30500, np.uint16)
+    depth_mm[5:15, 10:20] = 30480
+    rho = np.full((20, 30), 128, np.uint8)
+    cv2.imwrite(str(tmp_path / "d.png"), depth_mm)
+    cv2.imwrite(str(tmp_path / "r.png"), rho)
+    np.save(tmp_path / "d.npy", depth_mm / 1000.0)
+    from_png = cf.from_files(tmp_path / "d.png", tmp_path / "r.png", depth_scale_m=1e-3, reflectance_scale=1 / 255)
+    from_npy = cf.from_files(tmp_path / "d.npy")
+    d_png, r_png = from_png.render(20, 30)
+    d_npy, _ = from_npy.render(20, 30)
+    np.testing.assert_allclose(d_png, depth_mm / 1000.0)
+    np.testing.assert_allclose(d_npy, depth_mm / 1000.0)
+    np.testing.assert_allclose(r_png, 128 / 255)
+    d_low, _ = from_png.render(10, 15)  # any output size: nearest-neighbour sampling
+    assert d_low[5, 7] == pytest.approx(30.48) and d_low[0, 0] == pytest.approx(30.5)
+    with pytest.raises(FileNotFoundError, match="not found"):
+        cf.from_files(tmp_path / "missing.png")
+    (tmp_path / "junk.png").write_bytes(b"not an image")
+    with pytest.raises(ValueError, match="could not read image"):
+        cf.from_files(tmp_path / "junk.png")
