@@ -26,6 +26,7 @@ from .constants import SPEED_OF_LIGHT_M_PER_S as C
 from .estimate.coarse import coarse_peak, hann_power, interpolate_peak
 from .estimate.iq import align_carrier_static, derotate, iq_from_frames, track_carrier_drift
 from .estimate.ml import UniformModel, crlb_frequency_only_m, grid_for, refine_ml_uniform
+from .estimate.nonuniform import depth_grid, periodogram_coarse, refine_time_domain
 from .hybrid import Hybrid
 from .modulator import MZM
 
@@ -85,6 +86,9 @@ class TileConfig(eqx.Module):
     bin_depth_m: float = eqx.field(static=True)
     snr_threshold: float = eqx.field(static=True)
     dtype: str = eqx.field(static=True)
+    uniform: bool = eqx.field(static=True, default=True)
+    frequencies_hz: jax.Array | None = None  # non-uniform path only
+    depth_grid_m: jax.Array | None = None  # non-uniform path only: coarse periodogram depths
 
 
 @eqx.filter_jit
@@ -108,9 +112,28 @@ def process_tile(cfg: TileConfig, frames, dark):
     if cfg.tracking:  # remove a slow carrier drift first (turbulence)
         i, q = derotate(i, q, track_carrier_drift(i, q, cfg.track_window))
     r, noise_var, _ = align_carrier_static(i, q)
+    noise_var = noise_var.astype(jnp.float64)
+    if cfg.uniform:
+        depth, amplitude, sigma, coarse, converged, finite_fit, wandered = _invert_uniform(cfg, r, noise_var)
+    else:
+        depth, amplitude, sigma, coarse, converged, finite_fit, wandered = _invert_nonuniform(cfg, r, noise_var)
+    snr = n * (amplitude * cfg.model.weights[cfg.dominant_order]) ** 2 / jnp.maximum(noise_var, 1e-30)
+    out_of_range = (depth < 0) | (depth >= cfg.ambiguity_m) | wandered
+    status = jnp.full(depth.shape, OK, jnp.int8)
+    # later conditions win: the status names the most basic reason a pixel is invalid
+    for cond, code in ((out_of_range, OUT_OF_RANGE), (~converged, NOT_CONVERGED), (snr < cfg.snr_threshold, LOW_SNR),
+                       (~finite_fit, FIT_FAILED), (dead, DEAD), (saturated, SATURATED), (~finite, BAD_DATA)):
+        status = jnp.where(cond, jnp.int8(code), status)
+    safe = lambda a: jnp.where(jnp.isfinite(a), a, 0.0)
+    return {"depth_m": safe(depth), "amplitude": safe(amplitude), "sigma_m": safe(sigma),
+            "snr": safe(snr), "fit_status": status, "valid": status == OK, "coarse_depth_m": safe(coarse)}
+
+
+def _invert_uniform(cfg: TileConfig, r, noise_var):
+    """Uniform sweep: rFFT over the frame index, Hann peak, then (ml) the DFT-window fit."""
+    n = r.shape[0]
     spec = jnp.fft.rfft(r.T, axis=-1) / math.sqrt(n)  # (P, K), unitary: white noise stays white
     power = hann_power(spec, n)
-    noise_var = noise_var.astype(jnp.float64)
     peak = coarse_peak(power)
     frac_bin = peak.astype(jnp.float64) if cfg.method == "dft" else interpolate_peak(power, peak).astype(jnp.float64)
     m = cfg.model
@@ -140,16 +163,35 @@ def process_tile(cfg: TileConfig, frames, dark):
         finite_fit = jnp.isfinite(depth)
         converged = jnp.ones_like(finite_fit)
         wandered = jnp.zeros_like(finite_fit)
-    snr = n * (amplitude * tone_weight) ** 2 / jnp.maximum(noise_var, 1e-30)
-    out_of_range = (depth < 0) | (depth >= cfg.ambiguity_m) | wandered
-    status = jnp.full(depth.shape, OK, jnp.int8)
-    # later conditions win: the status names the most basic reason a pixel is invalid
-    for cond, code in ((out_of_range, OUT_OF_RANGE), (~converged, NOT_CONVERGED), (snr < cfg.snr_threshold, LOW_SNR),
-                       (~finite_fit, FIT_FAILED), (dead, DEAD), (saturated, SATURATED), (~finite, BAD_DATA)):
-        status = jnp.where(cond, jnp.int8(code), status)
-    safe = lambda a: jnp.where(jnp.isfinite(a), a, 0.0)
-    return {"depth_m": safe(depth), "amplitude": safe(amplitude), "sigma_m": safe(sigma),
-            "snr": safe(snr), "fit_status": status, "valid": status == OK, "coarse_depth_m": safe(coarse)}
+    return depth, amplitude, sigma, coarse, converged, finite_fit, wandered
+
+
+def _invert_nonuniform(cfg: TileConfig, r, noise_var):
+    """Non-uniform schedule: periodogram over a depth grid, then (ml) the time-domain fit."""
+    m = cfg.model
+    f = cfg.frequencies_hz
+    depths = cfg.depth_grid_m
+    coarse, peak_amp = periodogram_coarse(r, f, depths, m.system_delay_s)
+    if cfg.method == "dft":  # nearest grid depth, no interpolation
+        step = depths[1] - depths[0]
+        coarse = depths[0] + jnp.round((coarse - depths[0]) / step) * step
+    tone_weight = m.weights[cfg.dominant_order]
+    if cfg.method == "ml":
+        fit = jax.vmap(lambda rr, d, v: refine_time_domain(
+            rr, f, m.weights, d, v, system_delay_s=m.system_delay_s, grid_half_width_m=cfg.grid_half_width_m,
+            grid_points=cfg.grid_points, max_steps=cfg.max_steps))(r.T, coarse, noise_var)
+        depth, amplitude, sigma = fit.depth_m, jnp.abs(fit.amplitude), fit.sigma_depth_m
+        finite_fit = jnp.isfinite(depth) & jnp.isfinite(sigma) & jnp.isfinite(amplitude)
+        return depth, amplitude, sigma, coarse, fit.converged, finite_fit, jnp.abs(depth - coarse) > 2 * cfg.bin_depth_m
+    amplitude = peak_amp / (2 * tone_weight)
+    # frequency-only bound for an arbitrary schedule: the tone's phase is a nuisance, so only
+    # the spread of f_m about its mean informs τ: var τ = σ²/(a²/2 · Σ(2π(f_m − f̄))²)
+    spread = jnp.sum((2 * jnp.pi * (f - jnp.mean(f))) ** 2)
+    sigma = C / 2 * jnp.sqrt(noise_var / (0.5 * (amplitude * 2 * tone_weight) ** 2 * spread + 1e-300))
+    if cfg.method == "dft":
+        sigma = jnp.maximum(sigma, (depths[1] - depths[0]) / math.sqrt(12))
+    finite_fit = jnp.isfinite(coarse)
+    return coarse, amplitude, sigma, coarse, jnp.ones_like(finite_fit), finite_fit, jnp.zeros_like(finite_fit)
 
 
 @dataclasses.dataclass
@@ -186,24 +228,32 @@ def build_config(frequencies_hz, hybrid: Hybrid, modulator: MZM, system_delay_s:
     f = np.asarray(frequencies_hz, np.float64)
     n = f.size
     step = float(np.median(np.diff(f)))
-    if not np.allclose(np.diff(f), step, rtol=1e-9, atol=1e-3):
-        raise NotImplementedError("non-uniform frequency schedules: the tiled pipeline handles uniform sweeps "
-                                  "only (the DFT window model assumes f_m = f_0 + mΔf)")
+    uniform = bool(np.allclose(np.diff(f), step, rtol=1e-9, atol=1e-3))
     weights = np.asarray(modulator.weights(), np.float64)
     if weights.shape[0] < 2 or not np.any(weights[1:] > 1e-12 * max(weights[0], 1e-300)):
         raise ValueError("the modulator settings give no beat tone (all sideband weights beyond n=0 vanish): "
                          "check modulation_index and bias_rad")
     dominant = int(np.argmax(weights[1:]) + 1)
-    bin_depth = C / (2 * n * step)
     ripple = C / (2 * float(np.mean(f)))
-    half, points, candidates = grid_for(bin_depth, ripple)
+    if uniform:
+        bin_depth = C / (2 * n * step)
+        half, points, candidates = grid_for(bin_depth, ripple)
+    else:  # the envelope width c/(2B) plays the bin's part
+        bin_depth = float(C / (2 * (f[-1] - f[0])))
+        half, points, candidates = grid_for(bin_depth, ripple)
+        candidates = 1
     iq_w, iq_b = hybrid.iq_matrix_dn(1.0)
     model = UniformModel(float(f[0]), step, jnp.asarray(weights), float(system_delay_s), num_frames=n,
                          grid_order=dominant)
+    # a non-uniform schedule is unambiguous up to its finest step (coarser steps add sidelobes)
+    ambiguity = C / (4 * (step if uniform else float(np.min(np.diff(f)))) * dominant)
+    extra = {}
+    if not uniform:
+        extra = {"uniform": False, "frequencies_hz": jnp.asarray(f),
+                 "depth_grid_m": jnp.asarray(depth_grid(f, ambiguity))}
     return TileConfig(iq_w, iq_b, model, saturation_dn, options.method, options.tracking,
                       options.track_window_frames, options.window_bins, half, points, candidates, options.max_steps,
-                      dominant, C / (4 * step * dominant), bin_depth, 10 ** (options.snr_threshold_db / 10),
-                      options.dtype)
+                      dominant, ambiguity, bin_depth, 10 ** (options.snr_threshold_db / 10), options.dtype, **extra)
 
 
 def reconstruct_array(frames, frequencies_hz, options: ReconstructOptions | None = None, *,
@@ -271,7 +321,9 @@ def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibrati
             "snr_threshold_db": options.snr_threshold_db, "dtype": options.dtype,
             "seconds": time.perf_counter() - t0, "window_bins": options.window_bins,
             "dominant_harmonic": cfg.dominant_order,
-            "frequency_path": "uniform sweep: rFFT over frame index; ML on the DFT window (Dirichlet kernels)"}
+            "frequency_path": ("uniform sweep: rFFT over the frame index; ML on the DFT window (Dirichlet kernels)"
+                               if cfg.uniform else "non-uniform schedule: periodogram over a depth grid; "
+                               "time-domain ML over all frames")}
     return outputs, meta
 
 
