@@ -347,3 +347,24 @@ def save_report(path, reg: Registration) -> Path:
         fig.savefig(tmp, format="png")
     plt.close(fig)
     return path
+
+
+def from_pixel_transforms(image_size, focal_px: float, transforms, distance_mm: float = 30500.0) -> Registration:
+    """Registration of four identical distortion-free cameras whose CCDs 2–4 see the scene
+    through an in-plane shift (dx, dy px) and rotation (deg) about the image centre — the
+    simulator's `misregistration` effect — expressed as poses (R about the optical axis, T in
+    the image plane) at `distance_mm`."""
+    w, h = image_size
+    k = np.array([[focal_px, 0, w / 2 - 0.5], [0, focal_px, h / 2 - 0.5], [0, 0, 1]], np.float64)
+    cam = CameraCalibration(k, np.zeros(5), 0.0, {}, np.zeros(0), [], {})
+    Rs, Ts = [], []
+    for dx, dy, rot_deg in transforms:
+        b = -np.deg2rad(rot_deg)
+        r2 = np.array([[np.cos(b), -np.sin(b)], [np.sin(b), np.cos(b)]])
+        R = np.eye(3)
+        R[:2, :2] = r2
+        t = np.zeros(3)
+        t[:2] = -(distance_mm / focal_px) * (r2 @ np.array([dx, dy]))
+        Rs.append(R)
+        Ts.append(t)
+    return Registration((w, h), Board(3, 3, 1.0), [cam] * 4, Rs, Ts, [0.0] * 3, float(distance_mm), [], [], {}, 0.0)

@@ -89,13 +89,13 @@ def _provenance(path: Path, options) -> dict:
 
 
 def run_reconstruct(capture_path, out, options, calibration=None, png=None, ply=None, tiff=None,
-                    png_reference_m=None, png_range_mm=None) -> tuple[dict, dict]:
+                    png_reference_m=None, png_range_mm=None, registration=None) -> tuple[dict, dict]:
     from cohflash_jax.capture import Capture
     from cohflash_jax.reconstruct import open_and_reconstruct
     from cohflash_jax.results import save_depth_tiff, save_ply, save_preview_png, write_depth
 
     capture_path = Path(capture_path)
-    outputs, meta = open_and_reconstruct(capture_path, options, calibration)
+    outputs, meta = open_and_reconstruct(capture_path, options, calibration, registration)
     write_depth(out, outputs, meta, _provenance(capture_path, options))
     with Capture(capture_path) as cap:
         fov = tuple(np.asarray(cap.attrs.get("field_of_view_deg", (0.72, 0.58)), float))
@@ -130,13 +130,10 @@ def _summary(outputs, meta) -> str:
 def cmd_reconstruct(args) -> int:
     from cohflash_jax.reconstruct import ReconstructOptions
 
-    if args.registration:
-        raise NotImplementedError("--registration: four-CCD registration is not implemented yet (issue: Zhang "
-                                  "registration); reconstruct without it")
     options = ReconstructOptions(method=args.method, tracking=args.tracking, tile_rows=args.tile_rows,
                                  snr_threshold_db=args.snr_threshold_db, dtype=args.dtype, progress=not args.quiet)
     outputs, meta = run_reconstruct(args.capture, args.out, options, args.calibration, args.png, args.ply, args.tiff,
-                                    png_range_mm=args.png_range_mm)
+                                    png_range_mm=args.png_range_mm, registration=args.registration)
     print(f"wrote {args.out}\n" + _summary(outputs, meta))
     return 0
 
@@ -184,6 +181,33 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def cmd_calibrate_registration(args) -> int:
+    from cohflash_calibration.board import Board
+    from cohflash_calibration.registration import register, save_report, write_registration
+
+    board = Board.parse(args.board, args.square_mm)
+    reg = register(args.images, board, args.distance_mm, progress=not args.quiet)
+    write_registration(args.out, reg)
+    if args.report:
+        save_report(args.report, reg)
+    print(f"wrote {args.out}: image {reg.image_size[0]}×{reg.image_size[1]}, working distance {reg.distance_mm:.0f} mm")
+    for k, c in enumerate(reg.cameras, start=1):
+        kk = c.camera_matrix
+        print(f"  CCD {k}: f = {kk[0, 0]:.2f} ± {c.std_intrinsics[0]:.2f} px, c = ({kk[0, 2]:.2f}, {kk[1, 2]:.2f}) px, "
+              f"RMS {c.rms_px:.3f} px over {len(c.views_used)} views"
+              + (f"; left out: {', '.join(f'{n} ({r})' for n, r in c.views_left_out.items())}" if c.views_left_out else ""))
+    for k, (r, t, s, b, a) in enumerate(zip(reg.R, reg.T, reg.stereo_rms_px, reg.xor_before, reg.xor_after), start=2):
+        import cv2
+
+        ang = float(np.rad2deg(np.linalg.norm(cv2.Rodrigues(np.asarray(r))[0])))
+        print(f"  CCD {k} vs CCD 1: rotation {ang:.3f}°, translation {np.linalg.norm(t):.2f} mm, stereo RMS {s:.3f} px; "
+              f"XOR misalignment {b:.2%} → {a:.2%}")
+    if reg.failed:
+        print("views left out (board not found): " + ", ".join(reg.failed))
+    print(f"{reg.seconds_per_view * 1e3:.0f} ms per view")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="cohflash", description="Stepped-frequency coherent flash LiDAR: simulate "
                                 "captures, reconstruct depth with stated uncertainty.")
@@ -216,7 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, help="depth result file (.h5)")
     r.add_argument("--method", choices=("dft", "interp", "ml"), default="ml")
     r.add_argument("--calibration", help="hybrid calibration JSON (docs/formats.md)")
-    r.add_argument("--registration", help="four-CCD registration file (not implemented yet)")
+    r.add_argument("--registration", help="four-CCD registration JSON from `cohflash calibrate registration`")
     r.add_argument("--tracking", action="store_true", help="track a drifting carrier phase (turbulence)")
     r.add_argument("--png", help="colour-mapped depth preview with a colour bar in mm")
     r.add_argument("--tiff", help="float32 depth TIFF in metres (NaN = invalid)")
@@ -230,6 +254,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="I/Q and FFT precision (ML always float64)")
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(func=cmd_reconstruct)
+
+    cal = sub.add_parser("calibrate", help="calibration of the instrument from captures")
+    calsub = cal.add_subparsers(dest="what", required=True)
+    cr = calsub.add_parser("registration", help="four-CCD registration from chessboard views (Zhang, OpenCV)")
+    cr.add_argument("--images", nargs=4, required=True, metavar=("CCD1_DIR", "CCD2_DIR", "CCD3_DIR", "CCD4_DIR"),
+                    help="one folder of chessboard images per CCD; views are paired by sorted file name")
+    cr.add_argument("--board", required=True, help="inner corners COLSxROWS, e.g. 9x6")
+    cr.add_argument("--square-mm", type=float, required=True, help="chessboard square size (mm)")
+    cr.add_argument("--out", required=True, help="registration JSON to write")
+    cr.add_argument("--report", help="report figure (PNG): corners, per-view errors, XOR images")
+    cr.add_argument("--distance-mm", type=float, default=None,
+                    help="working distance for the pixel maps (default: median board distance)")
+    cr.add_argument("--quiet", action="store_true")
+    cr.set_defaults(func=cmd_calibrate_registration)
 
     sc = sub.add_parser("scenes", help="list built-in scenes and effects")
     sc.set_defaults(func=cmd_scenes)

@@ -32,7 +32,7 @@ from .modulator import MZM
 
 METHODS = ("dft", "interp", "ml")
 STATUS = {0: "ok", 1: "low_snr", 2: "not_converged", 3: "fit_failed", 4: "bad_data (NaN/inf)",
-          5: "saturated", 6: "dead (constant)", 7: "out_of_range"}
+          5: "saturated", 6: "dead (constant)", 7: "out_of_range", 8: "outside_registration"}
 OK, LOW_SNR, NOT_CONVERGED, FIT_FAILED, BAD_DATA, SATURATED, DEAD, OUT_OF_RANGE = range(8)
 DEFAULT_SNR_THRESHOLD_DB = 14.0
 
@@ -92,8 +92,9 @@ class TileConfig(eqx.Module):
 
 
 @eqx.filter_jit
-def process_tile(cfg: TileConfig, frames, dark):
+def process_tile(cfg: TileConfig, frames, dark, data_status=None):
     """Depth and companions for a tile of pixels: frames (4, N, P) → dict of (P,) arrays.
+    `data_status` (P,) int8, optional: codes found upstream (e.g. registration), kept if set.
 
     The I/Q stage runs in the file's (frame, pixel) layout; only the carrier-aligned real
     sequence is transposed to (pixel, frame) for the FFT along its contiguous last axis."""
@@ -124,6 +125,8 @@ def process_tile(cfg: TileConfig, frames, dark):
     for cond, code in ((out_of_range, OUT_OF_RANGE), (~converged, NOT_CONVERGED), (snr < cfg.snr_threshold, LOW_SNR),
                        (~finite_fit, FIT_FAILED), (dead, DEAD), (saturated, SATURATED), (~finite, BAD_DATA)):
         status = jnp.where(cond, jnp.int8(code), status)
+    if data_status is not None:
+        status = jnp.where(data_status != 0, data_status.astype(jnp.int8), status)
     safe = lambda a: jnp.where(jnp.isfinite(a), a, 0.0)
     return {"depth_m": safe(depth), "amplitude": safe(amplitude), "sigma_m": safe(sigma),
             "snr": safe(snr), "fit_status": status, "valid": status == OK, "coarse_depth_m": safe(coarse)}
@@ -271,8 +274,11 @@ def reconstruct_array(frames, frequencies_hz, options: ReconstructOptions | None
     return {k: np.asarray(v).reshape(h, w) for k, v in out.items()}
 
 
-def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibration: Calibration | None = None):
-    """Reconstruct an open capture tile by tile (bounded memory) → (outputs, metadata)."""
+def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibration: Calibration | None = None,
+                        registration_maps=None):
+    """Reconstruct an open capture tile by tile (bounded memory) → (outputs, metadata).
+
+    `registration_maps`: three (map_x, map_y) arrays (H, W) placing CCDs 2–4 on CCD 1's grid."""
     n, h, w = capture.shape
     attrs = capture.attrs
     hybrid = Hybrid(tuple(capture.hybrid_phases_rad))
@@ -285,13 +291,25 @@ def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibrati
     if hybrid.conditioning() > 1e3:
         raise ValueError(f"hybrid phases {np.round(np.asarray(hybrid.phases_rad), 4)} are nearly equal: "
                          "I/Q cannot be separated")
-    cfg = build_config(capture.frequencies_hz, hybrid, modulator, delay, capture.saturation_dn, options)
+    # registered tiles arrive as float32 with saturation judged upstream on the source pixels
+    saturation = None if registration_maps is not None else capture.saturation_dn
+    cfg = build_config(capture.frequencies_hz, hybrid, modulator, delay, saturation, options)
     rows = min(options.tile_rows, h)
     dark = capture.dark
     outputs = {}
     t0 = time.perf_counter()
 
+    registered = None
+    if registration_maps is not None:
+        from .registered import RegisteredTiles, register_dark
+
+        registered = RegisteredTiles(capture, registration_maps, rows)
+        if dark is not None:
+            dark = register_dark(dark, registration_maps)
+
     def tile_inputs(r0):
+        if registered is not None:
+            return registered.tile(r0, dark)
         r1 = min(h, r0 + rows)
         block = capture.read_tile(slice(r0, r1))
         if r1 - r0 < rows:  # pad the last tile so every tile has one compiled shape
@@ -302,14 +320,14 @@ def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibrati
             if r1 - r0 < rows:
                 dd = np.concatenate([dd, np.zeros((4, rows - (r1 - r0), w), dd.dtype)], axis=1)
             d = jnp.asarray(dd.reshape(4, rows * w))
-        return r1, jnp.asarray(block.reshape(4, n, rows * w)), d
+        return r1, jnp.asarray(block.reshape(4, n, rows * w)), d, None
 
     starts = list(range(0, h, rows))
     with tqdm(total=h * w, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True) as bar:
         nxt = tile_inputs(starts[0])
         for idx, r0 in enumerate(starts):
-            r1, block, d = nxt
-            result = process_tile(cfg, block, d)  # dispatched asynchronously
+            r1, block, d, data_status = nxt
+            result = process_tile(cfg, block, d, data_status)  # dispatched asynchronously
             if idx + 1 < len(starts):
                 nxt = tile_inputs(starts[idx + 1])  # read the next tile while this one computes
             for k, v in result.items():
@@ -320,17 +338,23 @@ def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibrati
             "carrier_alignment": "tracked" if options.tracking else "static",
             "snr_threshold_db": options.snr_threshold_db, "dtype": options.dtype,
             "seconds": time.perf_counter() - t0, "window_bins": options.window_bins,
-            "dominant_harmonic": cfg.dominant_order,
+            "dominant_harmonic": cfg.dominant_order, "registered": registration_maps is not None,
             "frequency_path": ("uniform sweep: rFFT over the frame index; ML on the DFT window (Dirichlet kernels)"
                                if cfg.uniform else "non-uniform schedule: periodogram over a depth grid; "
                                "time-domain ML over all frames")}
     return outputs, meta
 
 
-def open_and_reconstruct(path, options: ReconstructOptions, calibration_path=None):
+def open_and_reconstruct(path, options: ReconstructOptions, calibration_path=None, registration_path=None):
     calibration = None if calibration_path is None else Calibration.load(calibration_path)
+    maps = None
+    if registration_path is not None:
+        from cohflash_calibration.registration import load_registration
+
+        reg = load_registration(registration_path)
+        maps = [reg.maps(k) for k in (2, 3, 4)]
     with Capture(path) as cap:
         try:
-            return reconstruct_capture(cap, options, calibration)
+            return reconstruct_capture(cap, options, calibration, maps)
         except (NotImplementedError, ValueError) as exc:
             raise CaptureError(f"{path}: {exc}") from None

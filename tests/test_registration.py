@@ -1,0 +1,168 @@
+"""Four-CCD registration on synthetic chessboards with known cameras, its CLI and bad input,
+and registration applied in reconstruction of a misregistered capture."""
+
+import json
+import shutil
+
+import cv2
+import jax
+import numpy as np
+import pytest
+
+import cohflash_jax as cf
+from cohflash_calibration.board import Board
+from cohflash_calibration.registration import (RegistrationError, from_pixel_transforms, load_registration, register,
+                                               write_registration)
+from cohflash_calibration.synthetic import board_poses, default_rig, write_rig_views
+from cohflash_jax.cli import main
+
+BOARD = Board(9, 6, 25.0)
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return default_rig()
+
+
+@pytest.fixture(scope="module")
+def views(tmp_path_factory, rig):
+    """30 low-contrast 16-bit views per CCD (SWIR-like), plus one view whose board is
+    partly outside CCD 3's image and one blank view in CCD 2."""
+    root = tmp_path_factory.mktemp("rig")
+    rng = np.random.default_rng(0)
+    poses = board_poses(30, rng, BOARD)
+    poses.append((poses[0][0], poses[0][1] + np.array([330.0, 0.0, 0.0])))  # board off the right edge
+    dirs = write_rig_views(root, rig, BOARD, poses, rng=rng, bit_depth=16, black=0.02, white=0.07,
+                           background=0.04, noise=0.0005, offset=0.01)
+    cv2.imwrite(str(dirs[1] / "view_000.png"), np.full((512, 640), 2000, np.uint16))  # no board at all
+    return dirs
+
+
+@pytest.fixture(scope="module")
+def registration(views):
+    return register(views, BOARD, progress=False)
+
+
+def test_recovers_intrinsics_and_poses_of_known_cameras(rig, registration):
+    for cam, est in zip(rig, registration.cameras):
+        k, kt = est.camera_matrix, cam.camera_matrix
+        for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)):  # fx, fy, cx, cy within 0.5 %
+            assert abs(k[i, j] / kt[i, j] - 1) < 0.005
+        assert est.rms_px < 0.3
+        assert max(est.per_view_rms_px.values()) < 0.3
+    for cam, r, t in zip(rig[1:], registration.R, registration.T):
+        angle = np.rad2deg(np.linalg.norm(cv2.Rodrigues(r @ cam.R.T)[0]))
+        assert angle < 0.1
+        assert np.linalg.norm(t - cam.T) < 1.0
+    assert all(s < 0.3 for s in registration.stereo_rms_px)
+
+
+def test_failed_views_are_listed_and_left_out(views, registration):
+    failed = set(registration.failed)
+    assert str(views[1] / "view_000.png") in failed  # blank
+    assert any(f.endswith("view_030.png") for f in failed)  # board partly outside
+    assert "view_000" not in registration.cameras[1].views_used
+    assert "view_000" in registration.cameras[0].views_used
+
+
+def test_maps_match_the_true_cameras_and_xor_drops(rig, registration):
+    from cohflash_calibration.registration import CameraCalibration, pixel_maps
+
+    true = [CameraCalibration(c.camera_matrix, c.dist_coeffs, 0, {}, np.zeros(0), [], {}) for c in rig]
+    for k in (2, 3, 4):
+        mx, my = registration.maps(k)
+        tx, ty = pixel_maps(true[0], true[k - 1], rig[k - 1].R, rig[k - 1].T, rig[0].image_size, registration.distance_mm)
+        inner = (slice(40, -40), slice(40, -40))
+        assert np.max(np.hypot(mx - tx, my - ty)[inner]) < 0.5
+    for before, after in zip(registration.xor_before, registration.xor_after):
+        assert after < 0.02 < before  # the paper reports 1.5–2 % after registration
+
+
+def test_cli_writes_registration_and_report_that_round_trip(tmp_path, views, capsys):
+    out, report = tmp_path / "registration.json", tmp_path / "report.png"
+    rc = main(["calibrate", "registration", "--images", *map(str, views), "--board", "9x6", "--square-mm", "25",
+               "--out", str(out), "--report", str(report), "--quiet"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "XOR misalignment" in text and "chessboard not found" not in text and "view_000" in text
+    data = json.loads(out.read_text())
+    assert data["format"] == "cohflash-registration" and len(data["relative_poses"]) == 3
+    reg = load_registration(out)
+    np.testing.assert_allclose(reg.cameras[2].camera_matrix, np.array(data["cameras"][2]["camera_matrix"]))
+    assert report.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_bad_inputs_name_the_problem(tmp_path, views):
+    with pytest.raises(RegistrationError, match="not found"):
+        register([tmp_path / "nope"] + list(views[1:]), BOARD, progress=False)
+    short = tmp_path / "short"
+    shutil.copytree(views[0], short)
+    next(iter(sorted(short.iterdir()))).unlink()
+    with pytest.raises(RegistrationError, match="unequal numbers of views"):
+        register([short] + list(views[1:]), BOARD, progress=False)
+    sized = tmp_path / "sized"
+    shutil.copytree(views[3], sized)
+    odd = sorted(sized.iterdir())[5]
+    cv2.imwrite(str(odd), np.zeros((100, 120), np.uint16))
+    with pytest.raises(RegistrationError, match=f"{odd.name}.*size"):
+        register(list(views[:3]) + [sized], BOARD, progress=False)
+    depth = tmp_path / "depth"
+    shutil.copytree(views[3], depth)
+    odd = sorted(depth.iterdir())[5]
+    cv2.imwrite(str(odd), np.zeros((512, 640), np.uint8))
+    with pytest.raises(RegistrationError, match=f"{odd.name}.*bit depth"):
+        register(list(views[:3]) + [depth], BOARD, progress=False)
+    few = [tmp_path / f"few{k}" for k in range(4)]
+    for k, d in enumerate(few):
+        d.mkdir()
+        for i in range(3):
+            cv2.imwrite(str(d / f"v{i}.png"), np.full((64, 64), 128, np.uint8))
+    with pytest.raises(RegistrationError, match="too few valid views"):
+        register(few, BOARD, progress=False)
+    with pytest.raises(ValueError, match="COLSxROWS"):
+        Board.parse("9by6", 25)
+
+
+def test_registration_reduces_depth_errors_at_edges(tmp_path):
+    """The simulator's misregistration effect on, then reconstruction with and without the
+    registration that undoes it: depth errors on the staircase's edges drop."""
+    from cohflash_jax.simulate import simulate_to_file
+
+    transforms = ((4.0, -3.0, 0.8), (-3.5, 2.5, -0.6), (2.5, 4.0, 0.5))
+    settings = cf.EffectSettings(misregistration_px_px_deg=transforms)
+    scene = cf.staircase(effects=("sidebands", "shot_noise", "read_noise", "quantization", "misregistration"))
+    import dataclasses
+
+    scene = dataclasses.replace(scene, settings=settings)
+    h, w = 48, 64
+    inst = cf.Instrument.paper(3000)
+    cap = tmp_path / "mis.h5"
+    simulate_to_file(cap, scene, inst, h, w, seed=4, progress=False)
+    focal = (w / 2) / np.tan(np.deg2rad(inst.field_of_view_deg[0]) / 2)
+    reg_path = tmp_path / "reg.json"
+    write_registration(reg_path, from_pixel_transforms((w, h), focal, transforms))
+    results = {}
+    for name, extra in (("raw", []), ("registered", ["--registration", str(reg_path)])):
+        out = tmp_path / f"{name}.h5"
+        assert main(["reconstruct", str(cap), "--out", str(out), "--quiet", *extra]) == 0
+        import h5py
+
+        with h5py.File(out) as f:
+            results[name] = {k: f[k][()] for k in ("depth_m", "valid", "fit_status")}
+        with h5py.File(cap) as f:
+            truth = f["truth/depth_m"][()].astype(np.float64)
+    gy, gx = np.gradient(truth)
+    step = ((np.abs(gx) > 0) | (np.abs(gy) > 0)).astype(np.uint8)
+    edge = cv2.dilate(step, np.ones((9, 9), np.uint8)).astype(bool)  # within 4 px of a depth edge
+    b = 8  # image border: not all CCDs see it
+    edge[:b], edge[-b:], edge[:, :b], edge[:, -b:] = False, False, False, False
+
+    def edge_error(r):
+        err = np.abs(r["depth_m"] - truth)
+        err[~r["valid"].astype(bool)] = 0.2  # an invalid edge pixel counts as a 200 mm error
+        return np.mean(err[edge])
+
+    raw, reg = edge_error(results["raw"]), edge_error(results["registered"])
+    print(f"mean |depth error| within 4 px of edges: {raw * 1e3:.1f} mm unregistered, {reg * 1e3:.1f} mm registered")
+    assert reg < 0.5 * raw, (raw, reg)
+    assert np.all(results["registered"]["fit_status"][:2] == 8)  # CCD 2 (dy = −3 px) does not see the top rows
