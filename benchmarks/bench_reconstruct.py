@@ -71,7 +71,6 @@ def child_references(capture: str) -> dict:
 
 def child_ten_hz() -> dict:
     import jax
-    import numpy as np
 
     import cohflash_jax as cf
     from cohflash_jax.reconstruct import ReconstructOptions, build_config, process_tile

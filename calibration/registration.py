@@ -14,6 +14,8 @@ import cv2
 import numpy as np
 from tqdm.auto import tqdm
 
+from cohflash_jax.fileio import read_json
+
 from .board import Board
 
 IMAGE_SUFFIXES = {".png", ".tif", ".tiff", ".bmp", ".pgm", ".jpg", ".jpeg"}
@@ -141,9 +143,9 @@ def pixel_maps(cam1: CameraCalibration, camk: CameraCalibration, R, T, image_siz
     return proj[..., 0], proj[..., 1]
 
 
-def xor_ratio(img1_8: np.ndarray, imgk_8: np.ndarray, map_x=None, map_y=None) -> float:
+def xor_image(img1_8: np.ndarray, imgk_8: np.ndarray, map_x=None, map_y=None) -> tuple[np.ndarray, np.ndarray]:
     """The paper's check: Otsu-binarize both images (CCD k resampled onto CCD 1's grid when
-    maps are given), XOR, and count differing pixels among those both images cover."""
+    maps are given) and XOR them → (differing pixels, pixels both images cover)."""
     if map_x is not None:
         valid = (map_x >= 0) & (map_x <= imgk_8.shape[1] - 1) & (map_y >= 0) & (map_y <= imgk_8.shape[0] - 1)
         imgk_8 = cv2.remap(imgk_8, map_x, map_y, cv2.INTER_LINEAR)
@@ -151,7 +153,13 @@ def xor_ratio(img1_8: np.ndarray, imgk_8: np.ndarray, map_x=None, map_y=None) ->
         valid = np.ones(img1_8.shape, bool)
     _, b1 = cv2.threshold(img1_8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     _, bk = cv2.threshold(imgk_8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    return float(np.mean((b1 != bk)[valid]))
+    return (b1 != bk) & valid, valid
+
+
+def xor_ratio(img1_8: np.ndarray, imgk_8: np.ndarray, map_x=None, map_y=None) -> float:
+    """Fraction of misaligned pixels (XOR of the binarized images) among those both cover."""
+    diff, valid = xor_image(img1_8, imgk_8, map_x, map_y)
+    return float(diff.sum() / max(valid.sum(), 1))
 
 
 @dataclasses.dataclass
@@ -211,14 +219,7 @@ class Registration:
 
 
 def load_registration(path) -> Registration:
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"registration file not found: {path}")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise RegistrationError(f"{path}: not valid JSON ({exc})") from None
-    return Registration.from_json(data, path)
+    return Registration.from_json(read_json(path, "registration", RegistrationError), path)
 
 
 def register(folders, board: Board, distance_mm: float | None = None, progress: bool = True) -> Registration:
@@ -293,7 +294,7 @@ def register(folders, board: Board, distance_mm: float | None = None, progress: 
 
 
 def write_registration(path, reg: Registration) -> Path:
-    from cohflash_jax.atomic import atomic_path
+    from cohflash_jax.fileio import atomic_path
 
     path = Path(path)
     with atomic_path(path) as tmp:
@@ -308,7 +309,7 @@ def save_report(path, reg: Registration) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from cohflash_jax.atomic import atomic_path
+    from cohflash_jax.fileio import save_figure
 
     images8, detections = reg._images8, reg._detections
     common = [n for n in reg.cameras[0].views_used if all(n in c.views_used for c in reg.cameras)]
@@ -334,19 +335,11 @@ def save_report(path, reg: Registration) -> Path:
         f"CCD {k + 2}: XOR {b:.2%} → {a:.2%}, stereo RMS {s:.3f} px" for k, (b, a, s) in
         enumerate(zip(reg.xor_before, reg.xor_after, reg.stereo_rms_px))), fontsize=11, va="center")
     for k in range(1, 4):
-        mx, my = reg.maps(k + 1)
-        warped = cv2.remap(images8[k][view], mx, my, cv2.INTER_LINEAR)
-        _, b1 = cv2.threshold(images8[0][view], 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-        _, bk = cv2.threshold(warped, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-        axes[2, k].imshow(b1 ^ bk, cmap="gray")
+        axes[2, k].imshow(xor_image(images8[0][view], images8[k][view], *reg.maps(k + 1))[0], cmap="gray")
         axes[2, k].set_title(f"XOR CCD 1 vs registered CCD {k + 1}: {reg.xor_after[k - 1]:.2%}")
         axes[2, k].axis("off")
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def from_pixel_transforms(image_size, focal_px: float, transforms, distance_mm: float = 30500.0) -> Registration:

@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 from tqdm.auto import tqdm
 
-from .atomic import atomic_path
+from .fileio import atomic_path
 
 FORMAT_NAME = "cohflash-capture"
 FORMAT_VERSION = 1

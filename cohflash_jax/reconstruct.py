@@ -10,7 +10,6 @@ phase-locked model to the W bins around it (`estimate.ml`).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 from pathlib import Path
@@ -22,6 +21,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from .capture import Capture, CaptureError
+from .fileio import read_json
 from .constants import SPEED_OF_LIGHT_M_PER_S as C
 from .estimate.coarse import coarse_peak, hann_power, interpolate_peak
 from .estimate.iq import align_carrier_static, derotate, iq_from_frames, track_carrier_drift
@@ -48,12 +48,7 @@ class Calibration:
     @classmethod
     def load(cls, path) -> "Calibration":
         path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"calibration file not found: {path}")
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not valid JSON ({exc})") from None
+        data = read_json(path, "calibration")
         if data.get("format") != "cohflash-calibration":
             raise ValueError(f"{path}: format is {data.get('format')!r}, expected 'cohflash-calibration'")
         h = data.get("hybrid", {})

@@ -17,7 +17,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .atomic import atomic_path
+from .fileio import atomic_path, save_figure
 
 FORMAT_NAME = "cohflash-depth"
 FORMAT_VERSION = 1
@@ -78,11 +78,7 @@ def save_preview_png(path, depth_m, valid, title: str = "", reference_m: float |
     ax.set_xlabel("column")
     ax.set_ylabel("row")
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def save_depth_tiff(path, depth_m, valid) -> Path:
