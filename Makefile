@@ -18,7 +18,7 @@ demo: $(STAMP)
 	$(VENV)/bin/cohflash demo --out out/demo
 
 test: $(STAMP)
-	$(PY) -m pytest -q -n 2 --dist loadfile
+	$(PY) -m pytest -q -n 2 --dist load
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_simulate.py

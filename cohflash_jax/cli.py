@@ -180,6 +180,68 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def _pixel(text: str) -> tuple[int, int]:
+    try:
+        r, c = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"pixel must look like ROW,COL, got {text!r}") from None
+    return r, c
+
+
+def _roi(text: str) -> list[tuple[int, int]]:
+    try:
+        rows, cols = text.split(",")
+        r0, r1 = (int(v) for v in rows.split(":"))
+        c0, c1 = (int(v) for v in cols.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"ROI must look like R0:R1,C0:C1, got {text!r}") from None
+    if r1 <= r0 or c1 <= c0:
+        raise argparse.ArgumentTypeError(f"empty ROI {text!r}")
+    return [(r, c) for r in range(r0, r1) for c in range(c0, c1)]
+
+
+def cmd_uncertainty(args) -> int:
+    import tempfile
+
+    from cohflash_jax.capture import Capture
+    from cohflash_jax.fileio import atomic_path
+    from cohflash_jax.reconstruct import ReconstructOptions
+    from cohflash_jax.uncertainty import plot_posterior, run_pixels, write_posteriors
+
+    pixels = list(args.pixel or []) + (args.roi or [])
+    if not pixels:
+        raise ValueError("name pixels with --pixel ROW,COL (repeatable) or --roi R0:R1,C0:C1")
+    options = ReconstructOptions(method="ml", progress=False)
+    t0 = time.perf_counter()
+    with Capture(args.capture) as cap:
+        if args.chains:
+            chains = Path(args.out).with_suffix(".chains.h5")
+            with atomic_path(chains) as tmp:
+                results = run_pixels(cap, pixels, options, seed=args.seed, max_steps=args.max_steps,
+                                     chains_path=tmp, progress=not args.quiet)
+        else:
+            results = run_pixels(cap, pixels, options, seed=args.seed, max_steps=args.max_steps,
+                                 progress=not args.quiet)
+    seconds = time.perf_counter() - t0
+    write_posteriors(args.out, results, {"capture": str(Path(args.capture).resolve()), "seconds": seconds,
+                                         "seconds_per_pixel": seconds / len(pixels)})
+    print(f"wrote {args.out}: {len(results)} pixel(s), {seconds / len(pixels):.2f} s per pixel")
+    for r, c, p in results[:20]:
+        print(f"  ({r},{c}): median {p.median_m:.5f} m, 68 % [{(p.interval68_m[0] - p.median_m) * 1e3:+.3f}, "
+              f"{(p.interval68_m[1] - p.median_m) * 1e3:+.3f}] mm, 95 % [{(p.interval95_m[0] - p.median_m) * 1e3:+.3f}, "
+              f"{(p.interval95_m[1] - p.median_m) * 1e3:+.3f}] mm, CRLB σ {p.crlb_m * 1e3:.3f} mm"
+              + ("; MULTIMODAL" if p.multimodal else "") + (f" — {p.note}" if p.note else ""))
+    if len(results) > 20:
+        print(f"  … {len(results) - 20} more in the file")
+    if args.plot:
+        base = Path(args.plot)
+        for k, (r, c, p) in enumerate(results[: args.max_plots]):
+            target = base if len(results) == 1 else base.with_name(f"{base.stem}_{r}_{c}{base.suffix}")
+            plot_posterior(target, p, title=f"pixel ({r}, {c})")
+        print(f"wrote {min(len(results), args.max_plots)} plot(s) at {base.parent}/")
+    return 0
+
+
 def cmd_calibrate_registration(args) -> int:
     from cohflash_calibration.board import Board
     from cohflash_calibration.registration import register, save_report, write_registration
@@ -267,6 +329,19 @@ def build_parser() -> argparse.ArgumentParser:
                     help="working distance for the pixel maps (default: median board distance)")
     cr.add_argument("--quiet", action="store_true")
     cr.set_defaults(func=cmd_calibrate_registration)
+
+    u = sub.add_parser("uncertainty", help="per-pixel depth posteriors with emcee")
+    u.add_argument("capture")
+    u.add_argument("--pixel", type=_pixel, action="append", help="ROW,COL (repeatable)")
+    u.add_argument("--roi", type=_roi, help="R0:R1,C0:C1 (end-exclusive)")
+    u.add_argument("--out", required=True, help="posterior file (.h5)")
+    u.add_argument("--plot", help="PNG per pixel: depth marginal with the CRLB Gaussian, corner plot")
+    u.add_argument("--max-plots", type=int, default=16)
+    u.add_argument("--chains", action="store_true", help="keep all chains in OUT.chains.h5 (emcee HDF backend)")
+    u.add_argument("--max-steps", type=int, default=20000)
+    u.add_argument("--seed", type=int, default=0)
+    u.add_argument("--quiet", action="store_true")
+    u.set_defaults(func=cmd_uncertainty)
 
     sc = sub.add_parser("scenes", help="list built-in scenes and effects")
     sc.set_defaults(func=cmd_scenes)

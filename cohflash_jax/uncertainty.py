@@ -1,0 +1,320 @@
+"""Per-pixel depth posteriors with emcee: intervals that stay honest near the SNR threshold,
+where the likelihood of the phase-locked model has several ripples and the CRLB's Gaussian lies.
+
+Data of a pixel: the unitary DFT windows (the ML fit's W bins) of the carrier-aligned in-phase
+sequence r and of its quadrature q. Model: Z·e^{−iφ̂} = e^{iδφ}·(c + A·T(τ)), i.e.
+R̂ = cos δφ·M and Q̂ = sin δφ·M with M = c·D₀ + A·T the phase-locked window model of
+`estimate.ml`, and white Gaussian noise of the variance measured in q. Sampled: the depth
+offset from the ML estimate (mm), the amplitude A ≥ 0 and the carrier-phase residual
+δφ ∈ (−π, π]. The offset c — linear, flat prior — is marginalised analytically (for a Gaussian
+likelihood that is its profile up to a constant); sampling it would leave emcee a flat
+direction whenever the window excludes the DC bin. The depth prior is uniform over ±2 DFT
+bins around the ML estimate (the window's reach) within [0, ambiguity).
+
+Speed: the tone's window T(depth) is tabulated once per pixel on a grid fine enough for
+linear interpolation to be exact to ~1e-7 of its amplitude; each emcee call then costs a
+gather and a few vector operations for all walkers (`vectorize=True`, jitted JAX → NumPy).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+
+import emcee
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .estimate.iq import align_carrier_static, derotate, iq_from_frames
+from .estimate.ml import UniformModel, _bin_weights, window_tables
+from .reconstruct import OK, TileConfig, process_tile
+
+PARAMETERS = ("depth_offset_mm", "amplitude", "carrier_phase_rad")
+LABELS = ("depth − ML (mm)", "amplitude A (DN)", "carrier phase δφ (rad)")
+
+
+class PixelData(eqx.Module):
+    """What the posterior of one pixel needs (float64; a leading pixel axis when batched)."""
+
+    r_window: jax.Array  # (W,) complex
+    q_window: jax.Array  # (W,) complex
+    k0: jax.Array
+    ml_depth_m: jax.Array
+    ml_amplitude: jax.Array
+    noise_var: jax.Array
+    crlb_m: jax.Array
+    status: jax.Array
+
+
+@eqx.filter_jit
+def pixel_data(cfg: TileConfig, frames, dark=None) -> PixelData:
+    """ML results and the DFT windows of r and q for pixels (4, N, P) → PixelData (leading P)."""
+    out = process_tile(cfg, frames, dark)
+    n = frames.shape[1]
+    i, q = iq_from_frames(frames.astype(jnp.float32), cfg.iq_weights, cfg.iq_bias, dark)
+    _, _, phase = align_carrier_static(i, q)
+    r, qr = derotate(i, q, phase[None, :])
+    spec_r = jnp.fft.rfft(r.T, axis=-1) / math.sqrt(n)
+    spec_q = jnp.fft.rfft(qr.T, axis=-1) / math.sqrt(n)
+    k_count = spec_r.shape[-1]
+    w = min(cfg.window_bins, k_count)
+    m = cfg.model
+    tau = 2 * out["depth_m"] / 299_792_458.0 + m.system_delay_s
+    frac = jnp.mod(tau * m.step_hz * cfg.dominant_order, 1.0)  # cycles per frame of the dominant tone
+    peak = jnp.round(jnp.minimum(frac, 1 - frac) * n).astype(int)
+    k0 = jnp.clip(peak - w // 2, 0, k_count - w)
+    take = lambda s: jnp.take_along_axis(s, k0[:, None] + jnp.arange(w), axis=-1).astype(jnp.complex128)
+    noise_var = jnp.var(qr, axis=0).astype(jnp.float64)
+    return PixelData(take(spec_r), take(spec_q), k0, out["depth_m"], out["amplitude"], noise_var,
+                     out["sigma_m"], out["fit_status"])
+
+
+@eqx.filter_jit
+def _tone_table(model: UniformModel, k0, depths_m, width: int):
+    """The tone's window T(depth) (G, W) for unit amplitude, the DC column and bin weights."""
+    tables = window_tables(k0, width, model.num_frames)
+    tone = jax.vmap(lambda d: model.tone_column(d, tables))(depths_m)
+    return tone, model.dc_column(tables), _bin_weights(tables, model.num_frames)
+
+
+@jax.jit
+def _log_posterior(table, dc, omega, y, noise_var, table_start_mm, table_step_mm, ml_depth_m,
+                   depth_half_range_m, ambiguity_m, thetas):
+    """Log-posterior of walkers `thetas` (B, 3); the amplitude is in the units of `y`."""
+    offset_mm, amp, dphi = thetas[:, 0], thetas[:, 1], thetas[:, 2]
+    pos = (offset_mm - table_start_mm) / table_step_mm
+    idx = jnp.clip(jnp.floor(pos).astype(int), 0, table.shape[0] - 2)
+    frac = (pos - idx)[:, None]
+    tone = (1 - frac) * table[idx] + frac * table[idx + 1]  # (B, W)
+    m = amp[:, None] * tone
+    c, s = jnp.cos(dphi)[:, None], jnp.sin(dphi)[:, None]
+    stack = lambda a, b: jnp.concatenate([jnp.real(a), jnp.imag(a), jnp.real(b), jnp.imag(b)], axis=-1) \
+        * jnp.tile(omega, 4)
+    e = y[None, :] - stack(c * m, s * m)
+    col = stack(c * dc[None, :], s * dc[None, :])
+    e = e - col * (jnp.sum(col * e, axis=-1) / (jnp.sum(col * col, axis=-1) + 1e-300))[:, None]
+    depth = ml_depth_m + 1e-3 * offset_mm
+    ok = (amp >= 0) & (jnp.abs(dphi) <= jnp.pi) & (jnp.abs(1e-3 * offset_mm) <= depth_half_range_m) \
+        & (depth >= 0) & (depth < ambiguity_m)
+    return jnp.where(ok, -jnp.sum(e * e, axis=-1) / noise_var, -jnp.inf)
+
+
+def make_log_prob(model: UniformModel, data: PixelData, *, depth_half_range_m: float, ambiguity_m: float,
+                  ripple_m: float):
+    """Vectorised log-posterior over walkers for emcee (jitted JAX in, NumPy out)."""
+    order = max(1, model.weights.shape[0] - 1)
+    step_mm = 1e3 * min(ripple_m, depth_half_range_m) / (order * 1000)
+    half_mm = 1e3 * depth_half_range_m
+    grid = np.arange(-half_mm, half_mm + 2 * step_mm, step_mm)
+    table, dc, omega = _tone_table(model, data.k0, data.ml_depth_m + 1e-3 * jnp.asarray(grid),
+                                   int(data.r_window.shape[0]))
+    y = jnp.concatenate([jnp.real(data.r_window), jnp.imag(data.r_window), jnp.real(data.q_window),
+                         jnp.imag(data.q_window)]) * jnp.tile(omega, 4)
+    args = (table, dc, omega, y, data.noise_var, float(grid[0]), float(step_mm), data.ml_depth_m,
+            depth_half_range_m, ambiguity_m)
+
+    def log_prob(thetas):
+        return np.asarray(_log_posterior(*args, jnp.asarray(thetas, jnp.float64)))
+
+    return log_prob
+
+
+@dataclasses.dataclass
+class Posterior:
+    """Summary of one pixel's posterior. Depths in metres; `samples` in PARAMETERS units."""
+
+    samples: np.ndarray
+    ml_depth_m: float
+    mean_m: float
+    median_m: float
+    interval68_m: tuple[float, float]
+    interval95_m: tuple[float, float]
+    crlb_m: float
+    multimodal: bool
+    converged: bool
+    autocorr_steps: float
+    acceptance: float
+    steps: int
+    note: str
+    ml_status: int = 0  # the ML fit's status code for this pixel (0 = valid)
+
+    def covers(self, depth_m: float, level: int = 68) -> bool:
+        lo, hi = self.interval68_m if level == 68 else self.interval95_m
+        return lo <= depth_m <= hi
+
+
+def sample_pixel(model: UniformModel, data: PixelData, *, ambiguity_m: float, bin_depth_m: float, ripple_m: float,
+                 rng: np.random.Generator, nwalkers: int = 32, batch: int = 500, max_steps: int = 20000,
+                 backend=None) -> Posterior:
+    """emcee posterior of one pixel. Runs until the chain is ≥ 50 integrated autocorrelation
+    times long and τ has settled (emcee's guidance), else warns at `max_steps`."""
+    half_range = 2 * bin_depth_m
+    log_prob = make_log_prob(model, data, depth_half_range_m=half_range, ambiguity_m=ambiguity_m,
+                             ripple_m=ripple_m)
+    amp0 = float(data.ml_amplitude) if np.isfinite(data.ml_amplitude) and data.ml_amplitude > 0 \
+        else float(np.sqrt(data.noise_var))
+    crlb = float(data.crlb_m)
+    sigma_mm = 1e3 * crlb if np.isfinite(crlb) and crlb > 0 else 100 * ripple_m
+    sigma_mm = min(sigma_mm, 0.25e3 * ripple_m)
+    # probe the neighbouring ripples and the half-ripple (sign-flipped) solutions: every one
+    # within 15 log-units of the best gets a share of the walkers
+    probe = np.array([0.0, -1.0, 1.0, -2.0, 2.0, -0.5, 0.5]) * ripple_m * 1e3
+    probe = probe[np.abs(probe) <= 0.9e3 * half_range]
+    trial = np.zeros((probe.size, 3))
+    trial[:, 0], trial[:, 1] = probe, amp0
+    lp = log_prob(trial)
+    trial[:, 2] = np.pi
+    lp = np.maximum(lp, log_prob(trial))
+    keep = np.isfinite(lp) & (lp >= np.max(lp[np.isfinite(lp)], initial=-np.inf) - 15.0)
+    centres = probe[keep] if keep.any() else np.zeros(1)
+    p0 = np.empty((nwalkers, 3))
+    p0[:, 0] = centres[np.arange(nwalkers) % centres.size] + rng.normal(0, sigma_mm, nwalkers)
+    p0[:, 0] = np.clip(p0[:, 0], -0.95e3 * half_range, 0.95e3 * half_range)
+    p0[:, 1] = amp0 * np.abs(1 + 0.05 * rng.standard_normal(nwalkers))
+    p0[:, 2] = 0.05 * rng.standard_normal(nwalkers)
+    flip = np.abs(np.abs(p0[:, 0]) - 0.5e3 * ripple_m) < 0.25e3 * ripple_m
+    p0[flip, 2] = np.angle(np.exp(1j * (p0[flip, 2] + np.pi)))
+    bad = ~np.isfinite(log_prob(p0))
+    p0[bad, 0], p0[bad, 2] = rng.normal(0, min(sigma_mm, 0.1 * half_range * 1e3), bad.sum()), 0.0
+    sampler = emcee.EnsembleSampler(nwalkers, 3, log_prob, vectorize=True, backend=backend)
+    state, old_tau, converged, tau = p0, np.full(3, np.inf), False, np.full(3, np.nan)
+    while sampler.iteration < max_steps:
+        state = sampler.run_mcmc(state, batch, progress=False)
+        tau = sampler.get_autocorr_time(tol=0)
+        if np.all(np.isfinite(tau)) and sampler.iteration >= 50 * np.max(tau) and \
+                np.all(np.abs(old_tau - tau) / tau < 0.05):
+            converged = True
+            break
+        old_tau = tau
+    tau_max = float(np.max(tau)) if np.all(np.isfinite(tau)) else float("nan")
+    burn = min(int(2 * tau_max), sampler.iteration // 2) if np.isfinite(tau_max) else sampler.iteration // 2
+    thin = max(1, int(tau_max / 2)) if np.isfinite(tau_max) else 1
+    samples = sampler.get_chain(discard=burn, thin=thin, flat=True)
+    note = ""
+    if not converged:
+        note = (f"not converged after {sampler.iteration} steps (τ ≈ {tau_max:.0f} steps; 50τ needed): "
+                "treat the intervals as indicative")
+        warnings.warn(note, stacklevel=2)
+    if int(data.status) != OK:
+        note = (note + "; " if note else "") + "the ML fit flagged this pixel (low SNR or bad data)"
+    depth = float(data.ml_depth_m) + 1e-3 * samples[:, 0]
+    q = np.percentile(depth, [2.5, 16, 50, 84, 97.5])
+    # the likelihood's modes sit a ripple (or half a ripple, with the carrier sign flipped)
+    # apart: count half-ripple cells holding ≥ 2 % of the samples, in separate clusters
+    cell = np.round((depth - np.median(depth)) / (0.5 * ripple_m)).astype(int)
+    counts = np.bincount(cell - cell.min())
+    occupied = np.flatnonzero(counts >= 0.02 * depth.size)
+    multimodal = bool(occupied.size > 1 and np.any(np.diff(occupied) > 1)) or \
+        bool(occupied.size > 1 and (q[4] - q[0]) > 0.75 * ripple_m)
+    return Posterior(samples, float(data.ml_depth_m), float(depth.mean()), float(q[2]), (float(q[1]), float(q[3])),
+                     (float(q[0]), float(q[4])), crlb, multimodal, converged, tau_max,
+                     float(np.mean(sampler.acceptance_fraction)), int(sampler.iteration), note, int(data.status))
+
+
+# -- a set of pixels from a capture, the posterior file and the figures -----------------------
+POSTERIOR_FIELDS = ("row", "col", "ml_depth_m", "mean_m", "median_m", "lo68_m", "hi68_m", "lo95_m", "hi95_m",
+                    "crlb_m", "multimodal", "converged", "autocorr_steps", "acceptance", "steps")
+
+
+def run_pixels(capture, pixels, options, *, seed: int = 0, max_steps: int = 20000, chains_path=None,
+               progress: bool = True):
+    """Posteriors of (row, col) pixels of an open capture → list of (row, col, Posterior).
+
+    Frames of each pixel are read on their own (4 × N values), so any set of pixels costs
+    what it reads. `chains_path` keeps every chain in emcee's HDF5 backend, one group per pixel."""
+    from tqdm.auto import tqdm
+
+    from .hybrid import Hybrid
+    from .reconstruct import build_config, modulator_from_attrs
+
+    n, h, w = capture.shape
+    for r, c in pixels:
+        if not (0 <= r < h and 0 <= c < w):
+            raise ValueError(f"pixel ({r}, {c}) is outside the {h}×{w} capture")
+    cfg = build_config(capture.frequencies_hz, Hybrid(tuple(capture.hybrid_phases_rad)),
+                       modulator_from_attrs(capture.attrs), 0.0, capture.saturation_dn, options)
+    if not cfg.uniform:
+        raise ValueError("posteriors are implemented for uniform sweeps (the DFT-window likelihood)")
+    ripple = 299_792_458.0 / (2 * float(np.mean(capture.frequencies_hz)))
+    frames = np.stack([capture.frames[:, :, r, c] for r, c in pixels], axis=-1)  # (4, N, P)
+    data = pixel_data(cfg, jnp.asarray(frames))
+    rng = np.random.default_rng(seed)
+    results = []
+    for p, (r, c) in enumerate(tqdm(pixels, unit="px", desc="posterior", disable=not progress)):
+        d = jax.tree_util.tree_map(lambda x: x[p], data)
+        backend = None if chains_path is None else emcee.backends.HDFBackend(str(chains_path), name=f"pixel_{r}_{c}")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # emcee's autocorrelation on short chains
+            post = sample_pixel(cfg.model, d, ambiguity_m=cfg.ambiguity_m, bin_depth_m=cfg.bin_depth_m,
+                                ripple_m=ripple, rng=rng, max_steps=max_steps, backend=backend)
+        results.append((r, c, post))
+    return results
+
+
+def write_posteriors(path, results, meta: dict):
+    """posterior.h5: one row per pixel (POSTERIOR_FIELDS) plus every pixel's thinned samples."""
+    import json
+
+    import h5py
+
+    from .fileio import atomic_path
+
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["format"] = "cohflash-posterior"
+        f.attrs["format_version"] = 1
+        f.attrs["parameters"] = json.dumps(PARAMETERS)
+        for k, v in meta.items():
+            f.attrs[k] = v
+        rows = {k: [] for k in POSTERIOR_FIELDS}
+        for r, c, post in results:
+            values = dict(row=r, col=c, ml_depth_m=post.ml_depth_m, mean_m=post.mean_m, median_m=post.median_m,
+                          lo68_m=post.interval68_m[0], hi68_m=post.interval68_m[1], lo95_m=post.interval95_m[0],
+                          hi95_m=post.interval95_m[1], crlb_m=post.crlb_m, multimodal=post.multimodal,
+                          converged=post.converged, autocorr_steps=post.autocorr_steps, acceptance=post.acceptance,
+                          steps=post.steps)
+            for k in POSTERIOR_FIELDS:
+                rows[k].append(values[k])
+            g = f.create_dataset(f"samples/pixel_{r}_{c}", data=post.samples.astype(np.float32))
+            g.attrs["note"] = post.note
+        for k, v in rows.items():
+            f.create_dataset(k, data=np.asarray(v))
+
+
+def plot_posterior(path, post: Posterior, title: str = ""):
+    """Marginal of depth with the CRLB Gaussian over it, beside a corner plot of the parameters."""
+    import corner
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .fileio import save_figure
+
+    fig = plt.figure(figsize=(13, 5.5), dpi=100)
+    ax = fig.add_axes([0.06, 0.12, 0.36, 0.78])
+    depth_mm = 1e3 * (post.ml_depth_m + 1e-3 * post.samples[:, 0] - post.ml_depth_m)
+    ax.hist(depth_mm, bins=80, density=True, color="0.6", label="posterior (emcee)")
+    if np.isfinite(post.crlb_m) and post.crlb_m > 0:
+        s = 1e3 * post.crlb_m
+        x = np.linspace(depth_mm.min(), depth_mm.max(), 400)
+        ax.plot(x, np.exp(-0.5 * (x / s) ** 2) / (s * np.sqrt(2 * np.pi)), "r-", label=f"CRLB Gaussian σ={s:.3f} mm")
+    for (lo, hi), ls in ((post.interval68_m, "--"), (post.interval95_m, ":")):
+        for v in (lo, hi):
+            ax.axvline(1e3 * (v - post.ml_depth_m), color="k", ls=ls, lw=1)
+    ax.set_xlabel("depth − ML estimate (mm)")
+    ax.set_ylabel("density")
+    ax.legend(fontsize=8)
+    ax.set_title(title or f"68 % (--) and 95 % (:) intervals; {'multimodal' if post.multimodal else 'unimodal'}"
+                 + ("" if post.converged else ", NOT converged"), fontsize=9)
+    sub = plt.figure(figsize=(6, 6))
+    corner.corner(post.samples, labels=list(LABELS), fig=sub, quantiles=(0.16, 0.5, 0.84), show_titles=False)
+    sub.canvas.draw()
+    img = np.asarray(sub.canvas.buffer_rgba())
+    plt.close(sub)
+    ax2 = fig.add_axes([0.48, 0.02, 0.5, 0.96])
+    ax2.imshow(img)
+    ax2.axis("off")
+    return save_figure(fig, path)
