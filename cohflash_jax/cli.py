@@ -201,7 +201,6 @@ def _roi(text: str) -> list[tuple[int, int]]:
 
 
 def cmd_uncertainty(args) -> int:
-    import tempfile
 
     from cohflash_jax.capture import Capture
     from cohflash_jax.fileio import atomic_path
