@@ -201,7 +201,6 @@ def _roi(text: str) -> list[tuple[int, int]]:
 
 
 def cmd_uncertainty(args) -> int:
-
     from cohflash_jax.capture import Capture
     from cohflash_jax.fileio import atomic_path
     from cohflash_jax.reconstruct import ReconstructOptions

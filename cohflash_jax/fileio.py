@@ -48,3 +48,15 @@ def save_figure(fig, path) -> Path:
         fig.savefig(tmp, format="png")
     plt.close(fig)
     return path
+
+
+def write_csv(path, rows: list[dict]) -> Path:
+    """A table (list of same-keyed dicts) as CSV, atomically."""
+    import csv
+
+    path = Path(path)
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    return path

@@ -7,7 +7,6 @@ against the ML fit (a row of the accuracy-versus-time table).
 from __future__ import annotations
 
 import argparse
-import csv
 import time
 import warnings
 from pathlib import Path
@@ -16,6 +15,7 @@ import jax
 import numpy as np
 
 import cohflash_jax as cf
+from cohflash_jax.fileio import write_csv
 from cohflash_jax.hybrid import Hybrid
 from cohflash_jax.modulator import MZM
 from cohflash_jax.reconstruct import ReconstructOptions, build_config, process_tile
@@ -51,10 +51,7 @@ def run(out: Path, pixels: int, reflectance: float, seed: int):
                      "converged": post.converged, "multimodal": post.multimodal, "steps": post.steps,
                      "tau": post.autocorr_steps})
     seconds = (time.perf_counter() - t0) / len(rows)
-    with open(out / "coverage.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(out / "coverage.csv", rows)
     c68 = np.mean([r["covered68"] for r in rows])
     c95 = np.mean([r["covered95"] for r in rows])
     n = len(rows)

@@ -11,13 +11,13 @@ against the measured peak-bin SNR as the target's reflectance falls).
 from __future__ import annotations
 
 import argparse
-import csv
 from pathlib import Path
 
 import jax
 import numpy as np
 
 import cohflash_jax as cf
+from cohflash_jax.fileio import write_csv
 from cohflash_jax.estimate.ml import crlb_frequency_only_m, crlb_phase_locked_m
 from cohflash_jax.reconstruct import DEFAULT_SNR_THRESHOLD_DB, ReconstructOptions, reconstruct_array
 
@@ -49,10 +49,7 @@ def run(out: Path, seeds: int, size: int = 16):
         rows.append({"method": method, "pixels": err.size, "precision_mm": 1e3 * err.std(),
                      "bias_mm": 1e3 * err.mean(), "x_crlb_phase_locked": err.std() / crlb,
                      "x_crlb_frequency_only": err.std() / crlb_f})
-    with open(out / "precision.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(out / "precision.csv", rows)
     md = ["| method | pixels | precision (mm) | bias (mm) | × phase-locked CRLB | × frequency-only CRLB |",
           "|---|---|---|---|---|---|"]
     md += [f"| {r['method']} | {r['pixels']} | {r['precision_mm']:.3f} | {r['bias_mm']:+.3f} | "
@@ -79,10 +76,7 @@ def run(out: Path, seeds: int, size: int = 16):
                       "crlb_mm": 1e3 * bound, "inlier_std_mm": 1e3 * err[~outlier].std(),
                       "x_crlb": err[~outlier].std() / bound, "outlier_fraction": outlier.mean(),
                       "max_snr_db_of_outliers": 10 * np.log10(snr[outlier].max()) if outlier.any() else float("nan")})
-    with open(out / "threshold.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(trows[0]))
-        w.writeheader()
-        w.writerows(trows)
+    write_csv(out / "threshold.csv", trows)
     import matplotlib
 
     matplotlib.use("Agg")

@@ -7,13 +7,13 @@ intrinsics and poses against truth, reprojection RMS, XOR misalignment, time per
 from __future__ import annotations
 
 import argparse
-import csv
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from cohflash_calibration.board import Board
+from cohflash_jax.fileio import write_csv
 from cohflash_calibration.registration import register, save_report, write_registration
 from cohflash_calibration.synthetic import board_poses, default_rig, write_rig_views
 
@@ -41,10 +41,7 @@ def run(out: Path, views: int, seed: int):
             row["t_err_mm"] = float(np.linalg.norm(t - cam.T))
             row["xor_before"], row["xor_after"] = reg.xor_before[k - 2], reg.xor_after[k - 2]
         rows.append(row)
-    with open(out / "registration.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(out / "registration.csv", rows)
     for r in rows:
         print("  ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.items()))
     print(f"{reg.seconds_per_view * 1e3:.1f} ms per view (detection + calibration + maps + XOR), "
