@@ -25,7 +25,8 @@ NOISE = ("shot_noise", "read_noise", "dark_current", "quantization")
 
 
 def closed_form_noise_and_amplitude(inst: cf.Instrument, reflectance: float, distance_m: float = 30.5):
-    """Per-sample σ of I (electrons) and tone amplitude a = √(N_l N_e)·2w₁ (DESIGN.md §1)."""
+    """Per-sample σ of I (electrons) and tone amplitude a = √(N_l N_e)·2w₁ (DESIGN.md §1), from
+    the instrument's settings alone — also the tests' independent truth for the CRLB checks."""
     s, link, mzm = inst.sensor, inst.link, inst.modulator
     n_ref = float(s.electrons(link.reference_power_per_pixel_w))
     n_echo = float(s.electrons(link.echo_power_w(distance_m, reflectance)))

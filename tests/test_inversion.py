@@ -8,6 +8,7 @@ import pytest
 
 import cohflash_jax as cf
 from cohflash_jax.capture import Capture
+from cohflash_experiments.precision_table import closed_form_noise_and_amplitude
 from cohflash_jax.cli import main
 from cohflash_jax.constants import SPEED_OF_LIGHT_M_PER_S as C
 from cohflash_jax.estimate.ml import crlb_frequency_only_m, crlb_phase_locked_m
@@ -58,20 +59,6 @@ def test_noiseless_ml_is_exact_at_every_hard_depth(paper_instrument, simulate_pi
     assert np.max(np.abs(dft)) > 0.2 * bin_m  # the test can tell DFT from ML
 
 
-def _noise_sigma_and_amplitude(instrument, reflectance, quantization=True):
-    """Independent closed-form per-sample noise σ and tone amplitude a of r = Re(Z e^{-iφ}),
-    in electrons, from the instrument's settings alone (DESIGN.md §1)."""
-    s, link, mzm = instrument.sensor, instrument.link, instrument.modulator
-    n_ref = float(s.electrons(link.reference_power_per_pixel_w))
-    n_echo = float(s.electrons(link.echo_power_w(30.5, reflectance)))
-    s0 = float(mzm.mean_transmission())
-    w1 = float(mzm.weights()[1])
-    port = 0.25 * (n_ref + n_echo) * s0 + float(s.dark_electrons)
-    q = (1 / float(s.dn_per_electron)) ** 2 / 12 if quantization else 0.0
-    var_i = 2 * (port + float(s.read_noise_e) ** 2 + q)  # I = V0 − V2: two ports
-    return np.sqrt(var_i), np.sqrt(n_ref * n_echo) * 2 * w1
-
-
 @pytest.fixture(scope="module")
 def planar_monte_carlo(paper_instrument, noise_effects):
     """4 seeds × 64 pixels of the planar target at the paper's link budget."""
@@ -81,7 +68,7 @@ def planar_monte_carlo(paper_instrument, noise_effects):
 
 
 def test_ml_reaches_the_crlb_at_the_paper_link_budget(paper_instrument, planar_monte_carlo):
-    sigma, amp = _noise_sigma_and_amplitude(paper_instrument, 0.5)
+    sigma, amp = closed_form_noise_and_amplitude(paper_instrument, 0.5)
     crlb = crlb_phase_locked_m(paper_instrument.sweep.frequencies_hz, amp, sigma)
     outs = [_reconstruct(f, paper_instrument) for f in planar_monte_carlo]
     err = np.concatenate([o["depth_m"].ravel() for o in outs]) - 30.5
@@ -93,7 +80,7 @@ def test_ml_reaches_the_crlb_at_the_paper_link_budget(paper_instrument, planar_m
 
 
 def test_dft_and_interp_are_checked_against_truth_too(paper_instrument, planar_monte_carlo):
-    sigma, amp = _noise_sigma_and_amplitude(paper_instrument, 0.5)
+    sigma, amp = closed_form_noise_and_amplitude(paper_instrument, 0.5)
     freq_only = crlb_frequency_only_m(N_FRAMES, paper_instrument.sweep.step_hz, amp, sigma)
     phase_locked = crlb_phase_locked_m(paper_instrument.sweep.frequencies_hz, amp, sigma)
     assert 1.8 < freq_only / phase_locked < 2.2  # DESIGN.md §1: ≈ 2 for 0.1–6 GHz
@@ -276,7 +263,7 @@ def test_non_uniform_schedule_noiseless_and_at_the_crlb(sparse_instrument, noise
     assert out["valid"].all()
     assert np.max(np.abs(out["depth_m"].ravel() - depths)) < 1e-6
     # noisy planar target: time-domain ML against the closed-form phase-locked CRLB of this schedule
-    sigma, amp = _noise_sigma_and_amplitude(inst, 0.5)
+    sigma, amp = closed_form_noise_and_amplitude(inst, 0.5)
     crlb = crlb_phase_locked_m(inst.sweep.frequencies_hz, amp, sigma)
     err = np.concatenate([_reconstruct(cf.simulate(cf.planar(effects=noise_effects), inst, 8, 8, jax.random.key(s)),
                                        inst)["depth_m"].ravel() - 30.5 for s in range(3)])
