@@ -130,7 +130,8 @@ def cmd_reconstruct(args) -> int:
     from cohflash_jax.reconstruct import ReconstructOptions
 
     options = ReconstructOptions(method=args.method, tracking=args.tracking, tile_rows=args.tile_rows,
-                                 snr_threshold_db=args.snr_threshold_db, dtype=args.dtype, progress=not args.quiet)
+                                 snr_threshold_db=args.snr_threshold_db, dtype=args.dtype, progress=not args.quiet,
+                                 min_depth_m=args.min_depth_m)
     outputs, meta = run_reconstruct(args.capture, args.out, options, args.calibration, args.png, args.ply, args.tiff,
                                     png_range_mm=args.png_range_mm, registration=args.registration)
     print(f"wrote {args.out}\n" + _summary(outputs, meta))
@@ -267,6 +268,58 @@ def cmd_calibrate_registration(args) -> int:
     return 0
 
 
+def _pm(entry, scale=1.0, unit="", digits=4) -> str:
+    if entry.get("value") is None:
+        return "not identified: " + entry.get("note", "")
+    sig = entry.get("sigma")
+    text = f"{entry['value'] * scale:.{digits}g}" + (f" ± {sig * scale:.2g}" if sig is not None else "")
+    return text + unit + (f" ({entry['note']})" if entry.get("note") else "")
+
+
+def cmd_calibrate_hybrid(args) -> int:
+    import warnings
+
+    from cohflash_jax.calibration_file import write_calibration
+    from cohflash_jax.constants import SPEED_OF_LIGHT_M_PER_S as C
+    from cohflash_jax.hybrid_fit import calibrate_hybrid, save_hybrid_report
+
+    result = calibrate_hybrid(args.capture, dark_path=args.dark, flat_path=args.flat,
+                              known_distance_m=args.known_distance_m, fit_bias=args.fit_bias,
+                              max_pixels=args.max_pixels, progress=not args.quiet)
+    doc = result["document"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        write_calibration(args.out, doc, result["maps"])
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
+    if args.report:
+        save_hybrid_report(args.report, result)
+    fit, hyb, mod = doc["fit"], doc["hybrid"], doc["modulator"]
+    print(f"wrote {args.out}: {fit['pixels']} pixels × {fit['frames']} frames; gauge {doc['gauge']}")
+    print(f"carrier: {fit['carrier_drift']}")
+    if hyb["phases_rad"] is None:
+        print(f"hybrid: {hyb['note']}")
+    else:
+        for k in range(4):
+            print(f"  CCD {k + 1}: phase {np.degrees(hyb['phases_rad'][k]):8.3f} ± {np.degrees(hyb['phases_sigma_rad'][k]):.3f}°"
+                  f", gain {hyb['relative_gains'][k]:.4f} ± {hyb['relative_gains_sigma'][k]:.4f}"
+                  f", offset {hyb['offsets_dn'][k]:8.2f} ± {hyb['offsets_sigma_dn'][k]:.2f} DN")
+        print(f"  χ²/dof {fit['hybrid_chi2_per_dof']:.3f}")
+    print(f"modulation index β: {_pm(mod['modulation_index'])}")
+    print(f"roll-off f_3dB: {_pm(mod['rolloff_3db_hz'], 1e-9, ' GHz')}")
+    print(f"bias: {_pm(mod['bias_rad'], unit=' rad')}   (χ²/dof {fit['modulator_chi2_per_dof']:.3f} over "
+          f"{fit['modulator_pixels']} pixels)")
+    delay = doc["system_delay_s"]
+    if delay["value"] is None:
+        print(f"system delay τ_sys: not identified: {delay['note']}")
+    else:
+        print(f"system delay τ_sys: {delay['value'] * 1e9:.6f} ± {delay['sigma'] * 1e9:.6f} ns "
+              f"(path offset {delay['value'] * C / 2 * 1e3:.3f} ± {delay['sigma'] * C / 2 * 1e3:.3f} mm in depth)")
+    if result["maps"]:
+        print("per-pixel maps: " + ", ".join(sorted(result["maps"])))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="cohflash", description="Stepped-frequency coherent flash LiDAR: simulate "
                                 "captures, reconstruct depth with stated uncertainty.")
@@ -298,7 +351,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("capture")
     r.add_argument("--out", required=True, help="depth result file (.h5)")
     r.add_argument("--method", choices=("dft", "interp", "ml"), default="ml")
-    r.add_argument("--calibration", help="hybrid calibration JSON (docs/formats.md)")
+    r.add_argument("--calibration", help="calibration file (.json or .h5) from `cohflash calibrate hybrid`")
+    r.add_argument("--min-depth-m", type=float, default=0.0,
+                   help="coarse search ignores shallower depths (clutter near DC: drift, leakage)")
     r.add_argument("--registration", help="four-CCD registration JSON from `cohflash calibrate registration`")
     r.add_argument("--tracking", action="store_true", help="track a drifting carrier phase (turbulence)")
     r.add_argument("--png", help="colour-mapped depth preview with a colour bar in mm")
@@ -327,6 +382,21 @@ def build_parser() -> argparse.ArgumentParser:
                     help="working distance for the pixel maps (default: median board distance)")
     cr.add_argument("--quiet", action="store_true")
     cr.set_defaults(func=cmd_calibrate_registration)
+    ch = calsub.add_parser("hybrid", help="per-CCD phase/gain/offset, modulation index and roll-off, τ_sys "
+                           "from a stepped-frequency capture of a calibration target (optimistix)")
+    ch.add_argument("capture", help="capture of a flat, uniform target; the carrier phase must drift within pixels "
+                    "(turbulence or a reference-arm phase ramp) for the hybrid's phases and gains")
+    ch.add_argument("--out", required=True, help="calibration file: .json, or .h5 to keep per-pixel maps")
+    ch.add_argument("--dark", help="dark capture (light blocked): per-pixel offset map, and o_1")
+    ch.add_argument("--flat", help="flat-field capture (reference only, echo blocked; needs --dark): "
+                    "per-pixel relative gain maps")
+    ch.add_argument("--known-distance-m", type=float, default=None,
+                    help="target distance; without it τ_sys is not identifiable")
+    ch.add_argument("--fit-bias", action="store_true", help="fit the MZM bias too (nearly degenerate with β)")
+    ch.add_argument("--max-pixels", type=int, default=1024, help="strongest valid pixels used (default 1024)")
+    ch.add_argument("--report", help="report figure (PNG): I/Q before/after, tone taper, drift")
+    ch.add_argument("--quiet", action="store_true")
+    ch.set_defaults(func=cmd_calibrate_hybrid)
 
     u = sub.add_parser("uncertainty", help="per-pixel depth posteriors with emcee")
     u.add_argument("capture")

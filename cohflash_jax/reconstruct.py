@@ -20,8 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from .calibration_file import Calibration
 from .capture import Capture, CaptureError
-from .fileio import read_json
 from .constants import SPEED_OF_LIGHT_M_PER_S as C
 from .estimate.coarse import coarse_peak, hann_power, interpolate_peak
 from .estimate.iq import align_carrier_static, derotate, iq_from_frames, track_carrier_drift
@@ -35,32 +35,6 @@ STATUS = {0: "ok", 1: "low_snr", 2: "not_converged", 3: "fit_failed", 4: "bad_da
           5: "saturated", 6: "dead (constant)", 7: "out_of_range", 8: "outside_registration"}
 OK, LOW_SNR, NOT_CONVERGED, FIT_FAILED, BAD_DATA, SATURATED, DEAD, OUT_OF_RANGE = range(8)
 DEFAULT_SNR_THRESHOLD_DB = 14.0
-
-
-@dataclasses.dataclass(frozen=True)
-class Calibration:
-    """Hybrid and system calibration applied before inversion (see docs/formats.md)."""
-
-    hybrid: Hybrid = Hybrid()
-    system_delay_s: float = 0.0
-    modulator: MZM | None = None
-
-    @classmethod
-    def load(cls, path) -> "Calibration":
-        path = Path(path)
-        data = read_json(path, "calibration")
-        if data.get("format") != "cohflash-calibration":
-            raise ValueError(f"{path}: format is {data.get('format')!r}, expected 'cohflash-calibration'")
-        h = data.get("hybrid", {})
-        try:
-            hybrid = Hybrid(tuple(h.get("phases_rad", Hybrid().phases_rad)),
-                            tuple(h.get("relative_gains", (1.0,) * 4)), tuple(h.get("offsets_dn", (0.0,) * 4)))
-        except ValueError as exc:
-            raise ValueError(f"{path}: {exc}") from None
-        mod = data.get("modulator")
-        modulator = None if mod is None else MZM(float(mod["modulation_index"]), float(mod["bias_rad"]),
-                                                 max_order=int(mod.get("max_order", 3)))
-        return cls(hybrid, float(data.get("system_delay_s", 0.0)), modulator)
 
 
 class TileConfig(eqx.Module):
@@ -84,12 +58,15 @@ class TileConfig(eqx.Module):
     uniform: bool = eqx.field(static=True, default=True)
     frequencies_hz: jax.Array | None = None  # non-uniform path only
     depth_grid_m: jax.Array | None = None  # non-uniform path only: coarse periodogram depths
+    min_bin: int = eqx.field(static=True, default=1)  # coarse search starts here (--min-depth-m)
 
 
 @eqx.filter_jit
-def process_tile(cfg: TileConfig, frames, dark, data_status=None):
+def process_tile(cfg: TileConfig, frames, dark, data_status=None, gain=None, carrier_phase_rad=None):
     """Depth and companions for a tile of pixels: frames (4, N, P) → dict of (P,) arrays.
-    `data_status` (P,) int8, optional: codes found upstream (e.g. registration), kept if set.
+    `dark` (4, P): per-pixel offsets (DN); `gain` (4, P): per-pixel gains relative to the
+    hybrid's global ones; `data_status` (P,) int8: codes found upstream (e.g. registration);
+    `carrier_phase_rad` (N,): a known carrier drift common to all pixels, removed first.
 
     The I/Q stage runs in the file's (frame, pixel) layout; only the carrier-aligned real
     sequence is transposed to (pixel, frame) for the FFT along its contiguous last axis."""
@@ -103,8 +80,10 @@ def process_tile(cfg: TileConfig, frames, dark, data_status=None):
         frames = jnp.where(jnp.isfinite(frames), frames, 0.0)
     else:
         finite = jnp.ones(dead.shape, bool)
-    i, q = iq_from_frames(frames.astype(real), cfg.iq_weights, cfg.iq_bias, dark)  # (N, P) each
+    i, q = iq_from_frames(frames.astype(real), cfg.iq_weights, cfg.iq_bias, dark, gain)  # (N, P) each
     i, q = jax.lax.optimization_barrier((i, q))  # materialise once; later passes read I/Q, not frames
+    if carrier_phase_rad is not None:
+        i, q = derotate(i, q, jnp.asarray(carrier_phase_rad, i.dtype)[:, None])
     if cfg.tracking:  # remove a slow carrier drift first (turbulence)
         i, q = derotate(i, q, track_carrier_drift(i, q, cfg.track_window))
     r, noise_var, _ = align_carrier_static(i, q)
@@ -132,7 +111,7 @@ def _invert_uniform(cfg: TileConfig, r, noise_var):
     n = r.shape[0]
     spec = jnp.fft.rfft(r.T, axis=-1) / math.sqrt(n)  # (P, K), unitary: white noise stays white
     power = hann_power(spec, n)
-    peak = coarse_peak(power)
+    peak = coarse_peak(power, cfg.min_bin)
     frac_bin = peak.astype(jnp.float64) if cfg.method == "dft" else interpolate_peak(power, peak).astype(jnp.float64)
     m = cfg.model
     coarse = frac_bin / n / (cfg.dominant_order * m.step_hz) * C / 2 - C * m.system_delay_s / 2
@@ -203,6 +182,7 @@ class ReconstructOptions:
     snr_threshold_db: float = DEFAULT_SNR_THRESHOLD_DB
     dtype: str = "float32"
     progress: bool = True
+    min_depth_m: float = 0.0  # coarse search ignores shallower depths (slow drift / leakage lives near DC)
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -211,6 +191,8 @@ class ReconstructOptions:
             raise ValueError("dtype must be float32 or float64")
         if self.tile_rows < 1:
             raise ValueError("tile_rows must be ≥ 1")
+        if not self.min_depth_m >= 0:
+            raise ValueError(f"min_depth_m must be ≥ 0, got {self.min_depth_m}")
 
 
 def modulator_from_attrs(attrs: dict) -> MZM:
@@ -227,7 +209,10 @@ def build_config(frequencies_hz, hybrid: Hybrid, modulator: MZM, system_delay_s:
     n = f.size
     step = float(np.median(np.diff(f)))
     uniform = bool(np.allclose(np.diff(f), step, rtol=1e-9, atol=1e-3))
-    weights = np.asarray(modulator.weights(), np.float64)
+    # sideband weights at the sweep's mean frequency: with a roll-off the fundamental's
+    # amplitude tapers over the band, which to first order leaves the phase-locked depth
+    # unbiased (the taper's odd part is in quadrature with the tone's even kernel)
+    weights = np.asarray(modulator.weights(float(np.mean(f))), np.float64)
     if weights.shape[0] < 2 or not np.any(weights[1:] > 1e-12 * max(weights[0], 1e-300)):
         raise ValueError("the modulator settings give no beat tone (all sideband weights beyond n=0 vanish): "
                          "check modulation_index and bias_rad")
@@ -246,6 +231,13 @@ def build_config(frequencies_hz, hybrid: Hybrid, modulator: MZM, system_delay_s:
     # a non-uniform schedule is unambiguous up to its finest step (coarser steps add sidelobes)
     ambiguity = C / (4 * (step if uniform else float(np.min(np.diff(f)))) * dominant)
     extra = {}
+    if options.min_depth_m > 0:
+        if not uniform:
+            raise ValueError("min_depth_m applies to uniform sweeps only")
+        first = (2 * options.min_depth_m / C + system_delay_s) * n * step * dominant
+        if first >= n // 2:
+            raise ValueError(f"min_depth_m = {options.min_depth_m} m leaves no depth below the ambiguity limit")
+        extra["min_bin"] = max(1, int(math.floor(first)))
     if not uniform:
         extra = {"uniform": False, "frequencies_hz": jnp.asarray(f),
                  "depth_grid_m": jnp.asarray(depth_grid(f, ambiguity))}
@@ -256,8 +248,9 @@ def build_config(frequencies_hz, hybrid: Hybrid, modulator: MZM, system_delay_s:
 
 def reconstruct_array(frames, frequencies_hz, options: ReconstructOptions | None = None, *,
                       hybrid: Hybrid | None = None, modulator: MZM | None = None, system_delay_s: float = 0.0,
-                      dark=None, saturation_dn=None) -> dict:
-    """Reconstruct in-memory frames (4, N, H, W) → dict of (H, W) arrays (tests, small data)."""
+                      dark=None, saturation_dn=None, carrier_phase_rad=None) -> dict:
+    """Reconstruct in-memory frames (4, N, H, W) → dict of (H, W) arrays (tests, small data).
+    `carrier_phase_rad` (N,): a known common carrier drift to remove (calibration)."""
     options = options or ReconstructOptions(progress=False)
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[0] != 4:
@@ -265,7 +258,8 @@ def reconstruct_array(frames, frequencies_hz, options: ReconstructOptions | None
     _, n, h, w = frames.shape
     cfg = build_config(frequencies_hz, hybrid or Hybrid(), modulator or MZM(), system_delay_s, saturation_dn, options)
     d = None if dark is None else jnp.asarray(np.asarray(dark, np.float32).reshape(4, h * w))
-    out = process_tile(cfg, jnp.asarray(frames.reshape(4, n, h * w)), d)
+    carrier = None if carrier_phase_rad is None else jnp.asarray(carrier_phase_rad)
+    out = process_tile(cfg, jnp.asarray(frames.reshape(4, n, h * w)), d, None, None, carrier)
     return {k: np.asarray(v).reshape(h, w) for k, v in out.items()}
 
 
@@ -279,10 +273,18 @@ def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibrati
     hybrid = Hybrid(tuple(capture.hybrid_phases_rad))
     modulator = modulator_from_attrs(attrs)
     delay = 0.0
+    dark = capture.dark
+    gain_map = None
     if calibration is not None:
-        hybrid = Hybrid(calibration.hybrid.phases_rad, calibration.hybrid.relative_gains, calibration.hybrid.offsets_dn)
+        calibration.check_shape(h, w)
+        hybrid = calibration.hybrid or hybrid
         modulator = calibration.modulator or modulator
         delay = calibration.system_delay_s
+        gain_map = calibration.gain_map
+        if dark is None:
+            dark = calibration.offset_map_dn
+    if dark is not None:  # per-pixel offsets replace the global ones (never subtract both)
+        hybrid = Hybrid(hybrid.phases_rad, hybrid.relative_gains, (0.0,) * 4)
     if hybrid.conditioning() > 1e3:
         raise ValueError(f"hybrid phases {np.round(np.asarray(hybrid.phases_rad), 4)} are nearly equal: "
                          "I/Q cannot be separated")
@@ -290,7 +292,6 @@ def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibrati
     saturation = None if registration_maps is not None else capture.saturation_dn
     cfg = build_config(capture.frequencies_hz, hybrid, modulator, delay, saturation, options)
     rows = min(options.tile_rows, h)
-    dark = capture.dark
     outputs = {}
     t0 = time.perf_counter()
 
@@ -301,28 +302,33 @@ def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibrati
         registered = RegisteredTiles(capture, registration_maps, rows)
         if dark is not None:
             dark = register_dark(dark, registration_maps)
+        if gain_map is not None:
+            gain_map = register_dark(gain_map, registration_maps)
+
+    def map_tile(arr, r0, r1, fill):
+        """Rows r0:r1 of a (4, H, W) per-pixel map, padded to the tile shape → (4, P)."""
+        if arr is None:
+            return None
+        block = np.full((4, rows, w), fill, np.float32)
+        block[:, : r1 - r0] = arr[:, r0:r1]
+        return jnp.asarray(block.reshape(4, rows * w))
 
     def tile_inputs(r0):
-        if registered is not None:
-            return registered.tile(r0, dark)
         r1 = min(h, r0 + rows)
+        if registered is not None:
+            return registered.tile(r0, None) + (map_tile(dark, r0, r1, 0.0), map_tile(gain_map, r0, r1, 1.0))
         block = capture.read_tile(slice(r0, r1))
         if r1 - r0 < rows:  # pad the last tile so every tile has one compiled shape
             block = np.concatenate([block, np.zeros((4, n, rows - (r1 - r0), w), block.dtype)], axis=2)
-        d = None
-        if dark is not None:
-            dd = dark[:, r0:r1]
-            if r1 - r0 < rows:
-                dd = np.concatenate([dd, np.zeros((4, rows - (r1 - r0), w), dd.dtype)], axis=1)
-            d = jnp.asarray(dd.reshape(4, rows * w))
-        return r1, jnp.asarray(block.reshape(4, n, rows * w)), d, None
+        return (r1, jnp.asarray(block.reshape(4, n, rows * w)), None, None,
+                map_tile(dark, r0, r1, 0.0), map_tile(gain_map, r0, r1, 1.0))
 
     starts = list(range(0, h, rows))
     with tqdm(total=h * w, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True) as bar:
         nxt = tile_inputs(starts[0])
         for idx, r0 in enumerate(starts):
-            r1, block, d, data_status = nxt
-            result = process_tile(cfg, block, d, data_status)  # dispatched asynchronously
+            r1, block, _, data_status, d, g = nxt
+            result = process_tile(cfg, block, d, data_status, g)  # dispatched asynchronously
             if idx + 1 < len(starts):
                 nxt = tile_inputs(starts[idx + 1])  # read the next tile while this one computes
             for k, v in result.items():

@@ -11,13 +11,20 @@ from jaxtyping import Array, Float
 
 
 def iq_from_frames(frames: Array, iq_weights: Float[Array, "2 4"], iq_bias: Float[Array, " 2"],
-                   dark: Float[Array, "4 P"] | None = None):
-    """[I, Q] = W @ (DN − dark) + b; frames (4, N, P) in DN → I, Q of shape (N, P)."""
+                   dark: Float[Array, "4 P"] | None = None, gain: Float[Array, "4 P"] | None = None):
+    """[I, Q] = W @ ((DN − dark)/gain) + b; frames (4, N, P) in DN → I, Q of shape (N, P).
+
+    `dark` per-pixel offsets, `gain` per-pixel gains relative to those folded into W; both
+    are folded into per-pixel weights and bias, so the frames are read once."""
     x = frames if jnp.issubdtype(frames.dtype, jnp.floating) else frames.astype(jnp.float32)
     w = iq_weights.astype(x.dtype)
     b = iq_bias.astype(x.dtype)[:, None]
+    if gain is not None:
+        w = w[:, :, None] / gain.astype(x.dtype)[None]  # (2, 4, P)
     if dark is not None:
-        b = b - w @ dark.astype(x.dtype)  # (2, P): dark folded into the bias, not subtracted per frame
+        d = dark.astype(x.dtype)
+        # dark folded into the bias, not subtracted per frame
+        b = b - (jnp.einsum("ikp,kp->ip", w, d) if w.ndim == 3 else w @ d)
     i = w[0, 0] * x[0] + w[0, 1] * x[1] + w[0, 2] * x[2] + w[0, 3] * x[3] + b[0]
     q = w[1, 0] * x[0] + w[1, 1] * x[1] + w[1, 2] * x[2] + w[1, 3] * x[3] + b[1]
     return i, q
