@@ -131,7 +131,7 @@ def cmd_reconstruct(args) -> int:
 
     options = ReconstructOptions(method=args.method, tracking=args.tracking, tile_rows=args.tile_rows,
                                  snr_threshold_db=args.snr_threshold_db, dtype=args.dtype, progress=not args.quiet,
-                                 min_depth_m=args.min_depth_m)
+                                 min_depth_m=args.min_depth_m, max_fit_chi2=args.max_fit_chi2)
     outputs, meta = run_reconstruct(args.capture, args.out, options, args.calibration, args.png, args.ply, args.tiff,
                                     png_range_mm=args.png_range_mm, registration=args.registration)
     print(f"wrote {args.out}\n" + _summary(outputs, meta))
@@ -352,6 +352,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, help="depth result file (.h5)")
     r.add_argument("--method", choices=("dft", "interp", "ml"), default="ml")
     r.add_argument("--calibration", help="calibration file (.json or .h5) from `cohflash calibrate hybrid`")
+    r.add_argument("--max-fit-chi2", type=float, default=5.0,
+                   help="ml: flag pixels whose window fit has a larger reduced χ² (status 9, poor_fit)")
     r.add_argument("--min-depth-m", type=float, default=0.0,
                    help="coarse search ignores shallower depths (clutter near DC: drift, leakage)")
     r.add_argument("--registration", help="four-CCD registration JSON from `cohflash calibrate registration`")

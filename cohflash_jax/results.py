@@ -22,7 +22,8 @@ from .fileio import atomic_path, save_figure
 FORMAT_NAME = "cohflash-depth"
 FORMAT_VERSION = 1
 _DTYPES = {"depth_m": np.float64, "amplitude": np.float32, "valid": np.uint8, "sigma_m": np.float32,
-           "snr": np.float32, "fit_status": np.int8, "coarse_depth_m": np.float64}
+           "snr": np.float32, "fit_status": np.int8, "coarse_depth_m": np.float64,
+           "fit_chi2": np.float32}
 
 
 def write_depth(path, outputs: dict, meta: dict, provenance: dict) -> Path:

@@ -219,3 +219,23 @@ def test_calibration_file_round_trip_and_bad_files(tmp_path):
         f["gain_map"] = np.full((4, 2, 3), np.nan)
     with pytest.raises(ValueError, match="finite"):
         Calibration.load(tmp_path / "nan.h5")
+
+
+def test_turbulence_uncalibrated_flagged_calibrated_valid(calibrations, instrument, tmp_path):
+    """Under carrier drift an uncalibrated hybrid leaks common mode into I/Q and tracking can
+    fail: such pixels must be flagged (poor fit), never valid and wrong. With the calibration
+    they are valid and within 5σ of the truth."""
+    from cohflash_jax.reconstruct import ReconstructOptions, reconstruct_capture
+
+    path = tmp_path / "turbulent.h5"
+    simulate_to_file(path, cf.planar(30.5, 0.5, effects=NOISE + ERRORS + ("turbulence",)), instrument,
+                     SIZE, SIZE, seed=0, progress=False)
+    full = Calibration.from_document(calibrations[0][2]["document"])
+    with Capture(path) as cap:
+        for calib in (None, full):
+            out, _ = reconstruct_capture(cap, ReconstructOptions(tracking=True, progress=False), calib)
+            expected = 30.5 + (0.0 if calib is not None else PATH_OFFSET_M)
+            wild = np.abs(out["depth_m"] - expected) > 5 * out["sigma_m"]
+            assert not np.any(wild & out["valid"])
+            if calib is not None:
+                assert out["valid"].mean() > 0.95
