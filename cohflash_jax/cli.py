@@ -320,6 +320,62 @@ def cmd_calibrate_hybrid(args) -> int:
     return 0
 
 
+def _assignments(items) -> dict:
+    out = {}
+    for item in items or []:
+        for part in item.split(","):
+            if "=" not in part:
+                raise ValueError(f"expected NAME=VALUE, got {part!r}")
+            k, v = part.split("=", 1)
+            from cohflash_jax.design import PARAMETERS
+
+            if k.strip() not in PARAMETERS:
+                raise ValueError(f"unknown parameter {k.strip()!r}; known: {', '.join(PARAMETERS)}")
+            out[k.strip()] = float(v)
+    return out
+
+
+def cmd_sweep(args) -> int:
+    from cohflash_jax.design import parse_axis, plot_sweep, run_sweep
+
+    axes = [parse_axis(a) for a in args.axis]
+    mc_points = [_assignments([m]) for m in args.mc or []]
+    rows = run_sweep(axes, args.out, fixed=_assignments(args.set), mc_points=mc_points, mc_all=args.mc_all,
+                     mc_trials=args.mc_trials, workers=args.workers, progress=not args.quiet)
+    names = [n for n, _ in axes]
+    if args.plot:
+        plot_sweep(rows, names, args.plot)
+    crlb = np.array([float(r["crlb_mm"]) for r in rows])
+    print(f"wrote {args.out}: {len(rows)} points over {', '.join(names)}; CRLB {crlb.min():.4g} … {crlb.max():.4g} mm")
+    for r in rows:
+        if np.isfinite(float(r.get("mc_trials", float("nan")) or float("nan"))):
+            where = ", ".join(f"{n}={float(r[n]):g}" for n in names)
+            print(f"  Monte Carlo at {where}: {float(r['mc_precision_mm']):.4g} mm over {int(r['mc_trials'])} pixels "
+                  f"(CRLB {float(r['crlb_mm']):.4g} mm, bias {float(r['mc_bias_mm']):+.3g} mm, "
+                  f"valid {float(r['mc_valid_fraction']):.0%})")
+    return 0
+
+
+def cmd_design(args) -> int:
+    import json
+
+    from cohflash_jax.design import DesignProblem, design_report, optimise_design
+
+    problem = DesignProblem(args.target_precision_mm * 1e-3, args.max_range_m, args.distance_m, args.reflectance,
+                            args.max_power_mw * 1e-3, args.frame_rate_hz, args.min_frequency_ghz * 1e9,
+                            args.max_frequency_ghz * 1e9, schedule="uniform", max_frames=args.max_frames)
+    report = design_report(problem, compare_warped=args.schedule == "both", validate_trials=args.validate_trials,
+                           progress=not args.quiet)
+    print(report["text"])
+    if args.out:
+        from cohflash_jax.fileio import atomic_path
+
+        with atomic_path(args.out) as tmp:
+            tmp.write_text(json.dumps(report["document"], indent=1))
+        print(f"wrote {args.out}")
+    return 0 if report["document"]["feasible"] else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="cohflash", description="Stepped-frequency coherent flash LiDAR: simulate "
                                 "captures, reconstruct depth with stated uncertainty.")
@@ -399,6 +455,41 @@ def build_parser() -> argparse.ArgumentParser:
     ch.add_argument("--report", help="report figure (PNG): I/Q before/after, tone taper, drift")
     ch.add_argument("--quiet", action="store_true")
     ch.set_defaults(func=cmd_calibrate_hybrid)
+
+    sw = sub.add_parser("sweep", help="depth precision (CRLB from the autodiff Fisher information, and Monte "
+                        "Carlo) over a grid of design parameters → CSV (+ figure); resumable")
+    sw.add_argument("--axis", action="append", required=True, metavar="NAME=START:STOP:COUNT[:log] | NAME=V1,V2,…",
+                    help="a swept parameter (repeat for a grid): " + ", ".join(
+                        ["bandwidth_ghz", "start_ghz", "step_mhz", "num_steps", "distance_m", "probe_power_mw",
+                         "exposure_ms", "modulation_index", "bias_rad", "reflectance", "frame_rate_hz"]))
+    sw.add_argument("--set", action="append", metavar="NAME=VALUE[,…]", help="fixed parameters (default: the paper's)")
+    sw.add_argument("--mc", action="append", metavar="NAME=VALUE,…", help="grid point that also gets a Monte Carlo run")
+    sw.add_argument("--mc-all", action="store_true", help="Monte Carlo at every grid point")
+    sw.add_argument("--mc-trials", type=int, default=256, help="pixels (independent trials) per Monte Carlo point")
+    sw.add_argument("--workers", type=int, default=1, help="processes for Monte Carlo points (the CRLB grid is "
+                    "vectorised in one process)")
+    sw.add_argument("--out", required=True, help="CSV; an existing file is resumed (finished points are kept)")
+    sw.add_argument("--plot", help="figure (PNG): heat map with contours, or precision against the axis")
+    sw.add_argument("--quiet", action="store_true")
+    sw.set_defaults(func=cmd_sweep)
+
+    de = sub.add_parser("design", help="gradient-based design: the shortest acquisition that reaches a target "
+                        "precision under range, power and frequency limits, validated by Monte Carlo")
+    de.add_argument("--target-precision-mm", type=float, required=True)
+    de.add_argument("--max-range-m", type=float, required=True, help="required unambiguous range")
+    de.add_argument("--distance-m", type=float, default=30.5, help="target distance the precision is for")
+    de.add_argument("--reflectance", type=float, default=0.5)
+    de.add_argument("--max-power-mw", type=float, default=15.86)
+    de.add_argument("--frame-rate-hz", type=float, default=150.0)
+    de.add_argument("--min-frequency-ghz", type=float, default=0.1)
+    de.add_argument("--max-frequency-ghz", type=float, default=6.0, help="highest microwave frequency (hardware)")
+    de.add_argument("--max-frames", type=int, default=8192)
+    de.add_argument("--schedule", choices=("uniform", "both"), default="uniform",
+                    help="'both': also optimise a warped (non-uniform) schedule at the same frame count")
+    de.add_argument("--validate-trials", type=int, default=256, help="Monte Carlo pixels at the optimum (0: skip)")
+    de.add_argument("--out", help="design JSON")
+    de.add_argument("--quiet", action="store_true")
+    de.set_defaults(func=cmd_design)
 
     u = sub.add_parser("uncertainty", help="per-pixel depth posteriors with emcee")
     u.add_argument("capture")

@@ -241,8 +241,7 @@ def build_config(frequencies_hz, hybrid: Hybrid, modulator: MZM, system_delay_s:
         half, points, candidates = grid_for(bin_depth, ripple)
         candidates = 1
     iq_w, iq_b = hybrid.iq_matrix_dn(1.0)
-    model = UniformModel(float(f[0]), step, jnp.asarray(weights), float(system_delay_s), num_frames=n,
-                         grid_order=dominant)
+    model = UniformModel(float(f[0]), step, jnp.asarray(weights), float(system_delay_s), num_frames=n)
     # a non-uniform schedule is unambiguous up to its finest step (coarser steps add sidelobes)
     ambiguity = C / (4 * (step if uniform else float(np.min(np.diff(f)))) * dominant)
     extra = {"max_fit_chi2": float(options.max_fit_chi2)}
