@@ -224,13 +224,10 @@ def read_rows(path) -> list[dict]:
         return []
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
-    for r in rows:
-        for k, v in r.items():
-            try:
-                r[k] = float(v) if v not in ("", None) else float("nan")
-            except ValueError:
-                pass
-    return rows
+    out = []
+    for r in rows:  # empty cells (no Monte Carlo at that point) are left out
+        out.append({k: (v if k == "swept" else float(v)) for k, v in r.items() if v not in ("", None)})
+    return out
 
 
 def _write_rows(path, rows, columns):
@@ -256,17 +253,28 @@ def run_sweep(axes: list[tuple[str, np.ndarray]], out_csv, *, fixed: dict | None
         fixed.pop(n, None)
     grid = [dict(zip(names, combo)) for combo in itertools.product(*[v for _, v in axes])]
     points = [complete_point({**fixed, **g}) for g in grid]
-    columns = list(PARAMETERS) + list(RESULT_COLUMNS)
-    done = {_key(r, names): r for r in read_rows(out_csv)}
-    if done and any(c not in next(iter(done.values())) for c in names):
-        raise ValueError(f"{out_csv} holds a sweep over other parameters: choose another --out")
+    columns = ["swept"] + list(PARAMETERS) + list(RESULT_COLUMNS)
+    swept = ",".join(names)
+    previous = read_rows(out_csv)
+    if previous and any(r.get("swept") != swept for r in previous):
+        raise ValueError(f"{out_csv} holds a sweep over other parameters ({previous[0].get('swept')}): "
+                         "choose another --out")
+    if previous and points:
+        derived = {"bandwidth_ghz", "step_mhz"} if {"bandwidth_ghz", "step_mhz", "num_steps"} & set(names) else set()
+        for k in PARAMETERS:
+            if k in names or k in derived or k not in previous[0]:
+                continue
+            if not math.isclose(float(previous[0][k]), float(points[0][k]), rel_tol=1e-9):
+                raise ValueError(f"{out_csv} was swept with {k} = {previous[0][k]:g}, now {points[0][k]:g}: "
+                                 "choose another --out (the file's rows are kept)")
+    done = {_key(r, names): r for r in previous}
     wanted_mc = {_key({**fixed, **m}, names) for m in (mc_points or [])}
 
     def needs_mc(p):
         return mc_all or _key(p, names) in wanted_mc
 
     todo = [p for p in points if _key(p, names) not in done
-            or (needs_mc(p) and not np.isfinite(float(done[_key(p, names)].get("mc_trials", float("nan")))))]
+            or (needs_mc(p) and "mc_trials" not in done[_key(p, names)])]
     if stop_after is not None:
         todo = todo[:stop_after]
     pool = ProcessPoolExecutor(workers, mp_context=__import__("multiprocessing").get_context("spawn")) \
@@ -276,7 +284,7 @@ def run_sweep(axes: list[tuple[str, np.ndarray]], out_csv, *, fixed: dict | None
                   disable=not progress) as bar:
             for start in range(0, len(todo), chunk):
                 batch = todo[start:start + chunk]
-                rows = [{**p, **r} for p, r in zip(batch, crlb_rows(batch))]
+                rows = [{"swept": swept, **p, **r} for p, r in zip(batch, crlb_rows(batch))]
                 mc_jobs = [(i, (p, mc_trials, 0)) for i, p in enumerate(batch) if needs_mc(p)]
                 results = (pool.map(_mc_worker, [j for _, j in mc_jobs]) if pool is not None
                            else map(_mc_worker, [j for _, j in mc_jobs]))
@@ -434,8 +442,8 @@ def _objective(z, args):
     step_excess = jnp.max(steps) / (C / (4 * problem.max_range_m))  # must stay ≤ 1
     sign_margin = 1.2 * MIN_MEAN_TERM_SNR / mean_term_snr(inst, f, mask, problem.distance_m, problem.reflectance)
     # penalties in log space: steep cliffs would stall the line search
-    penalty = (4 * jax.nn.relu(jnp.log(ripple_margin / 0.9)) ** 2 + 4 * jax.nn.relu(jnp.log(step_excess)) ** 2
-               + 4 * jax.nn.relu(jnp.log(sign_margin)) ** 2)
+    penalty = 30 * (jax.nn.relu(jnp.log(ripple_margin / 0.9)) ** 2 + jax.nn.relu(jnp.log(step_excess)) ** 2
+                    + jax.nn.relu(jnp.log(sign_margin)) ** 2)
     return jnp.log(locked) + penalty
 
 
@@ -551,10 +559,17 @@ def optimise_design(problem: DesignProblem, progress: bool = True) -> DesignResu
     lo, hi = 4, problem.max_frames
     z_hi, (crlb_hi, coarse_hi, v_hi, f_hi) = _solve_for_n(hi, n_cap, problem)
     if not _meets(crlb_hi, coarse_hi, f_hi, problem, v_hi):
+        why = []
+        if crlb_hi > problem.target_precision_m:
+            why.append(f"best bound {crlb_hi * 1e3:.3g} mm")
+        if RIPPLE_SIGMAS * coarse_hi > C / (4 * float(np.mean(f_hi))):
+            why.append(f"the frequency-only bound ({coarse_hi * 1e3:.3g} mm) cannot keep the ML fit in its ripple")
+        if v_hi["mean_term_snr"] < MIN_MEAN_TERM_SNR:
+            why.append(f"the tone's sign is not resolved (mean-term SNR {v_hi['mean_term_snr']:.3g})")
         return DesignResult(hi, hi / problem.frame_rate_hz, crlb_hi, coarse_hi, v_hi, f_hi,
                             _active(v_hi, f_hi, hi, coarse_hi, problem), False,
-                            f"target {problem.target_precision_m * 1e3:g} mm not reachable within {hi} frames "
-                            f"(best {crlb_hi * 1e3:.3g} mm): raise power, range or frequency limits")
+                            f"target {problem.target_precision_m * 1e3:g} mm not reachable within {hi} frames ("
+                            + "; ".join(why) + "): allow more frames, power or bandwidth")
     best = (hi, z_hi, crlb_hi, coarse_hi, v_hi, f_hi)
     steps = int(math.ceil(math.log2(hi - lo + 1)))
     with tqdm(total=steps, desc="design (bisection over N)", disable=not progress) as bar:

@@ -140,7 +140,10 @@ def _invert_uniform(cfg: TileConfig, r, noise_var):
         wandered = jnp.abs(depth - coarse) > 2 * cfg.bin_depth_m
         # reduced χ² of the window fit: each unitary bin holds noise of variance σ²/2 per
         # component; 2W real residuals less the three fitted unknowns
-        chi2 = fit.cost / (0.5 * jnp.maximum(noise_var, 1e-30) * (2 * w - 3))
+        # (noise floored at 1e-9 of the window's mean power: noiseless data have rounding-level
+        # residuals and a zero noise estimate, which is not a misfit)
+        floor = 1e-9 * jnp.mean(jnp.abs(windows) ** 2, axis=-1)
+        chi2 = fit.cost / (0.5 * jnp.maximum(noise_var, jnp.maximum(floor, 1e-30)) * (2 * w - 3))
     else:
         # amplitude from the Hann peak: |H| = a·w·√N/4 for a tone a·2w·cos, Hann gain ½
         peak_mag = jnp.sqrt(jnp.take_along_axis(power, peak[:, None], axis=-1)[:, 0]).astype(jnp.float64)
