@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import itertools
 import math
 import os
@@ -59,6 +60,8 @@ PARAMETERS: dict[str, tuple[str, float]] = {
     "bias_rad": ("MZM bias angle θ_b (rad)", math.pi / 4),
     "reflectance": ("target reflectance", 0.5),
     "frame_rate_hz": ("camera frame rate (Hz): acquisition time = N / frame rate", 150.0),
+    "range_falloff": ("1: echo power ∝ 1/distance²; 0: the 30.5 m link budget at any distance (depth "
+                      "then only sets the tone's phase)", 1.0),
 }
 RESULT_COLUMNS = ("crlb_mm", "crlb_frequency_only_mm", "echo_fw", "acquisition_s", "ambiguity_m",
                   "mc_precision_mm", "mc_bias_mm", "mc_valid_fraction", "mc_trials")
@@ -140,17 +143,18 @@ def _fisher_masked(inst: Instrument, frequencies, mask, distance_m, reflectance,
     return jnp.einsum("kni,knj->ij", w, w)
 
 
-@jax.jit
-def _crlb_points(start_hz, step_hz, distance_m, power_w, exposure_s, beta, bias, reflectance, mask):
+@functools.partial(jax.jit, static_argnames="range_falloff")
+def _crlb_points(start_hz, step_hz, distance_m, power_w, exposure_s, beta, bias, reflectance, mask,
+                 range_falloff=True):
     """CRLBs (phase-locked, frequency-only) and echo power for a batch of points of one N."""
     m = jnp.arange(mask.shape[0], dtype=jnp.float64)
 
     def one(s0, df, d, p, te, b, th, rho):
         inst = _instrument(p, te, b, th)
         f = s0 + df * m
-        locked = crlb_from_fisher(_fisher_masked(inst, f, mask, d, rho, NOISE, False))
-        freq_only = crlb_from_fisher(_fisher_masked(inst, f, mask, d, rho, NOISE, True))
-        return locked, freq_only, inst.link.echo_power_w(d, rho, True)
+        locked = crlb_from_fisher(_fisher_masked(inst, f, mask, d, rho, NOISE, False, range_falloff))
+        freq_only = crlb_from_fisher(_fisher_masked(inst, f, mask, d, rho, NOISE, True, range_falloff))
+        return locked, freq_only, inst.link.echo_power_w(d, rho, range_falloff)
 
     return jax.vmap(one)(start_hz, step_hz, distance_m, power_w, exposure_s, beta, bias, reflectance)
 
@@ -158,15 +162,15 @@ def _crlb_points(start_hz, step_hz, distance_m, power_w, exposure_s, beta, bias,
 def crlb_rows(points: list[dict]) -> list[dict]:
     """CRLB columns for completed points, vectorised over points with the same N."""
     out = [None] * len(points)
-    by_n: dict[int, list[int]] = {}
+    by_n: dict[tuple, list[int]] = {}
     for i, p in enumerate(points):
-        by_n.setdefault(int(p["num_steps"]), []).append(i)
-    for n, idx in by_n.items():
+        by_n.setdefault((int(p["num_steps"]), bool(p["range_falloff"])), []).append(i)
+    for (n, falloff), idx in by_n.items():
         col = lambda k, s=1.0: jnp.asarray([points[i][k] * s for i in idx], jnp.float64)
         locked, freq_only, echo = _crlb_points(col("start_ghz", 1e9), col("step_mhz", 1e6), col("distance_m"),
                                                col("probe_power_mw", 1e-3), col("exposure_ms", 1e-3),
                                                col("modulation_index"), col("bias_rad"), col("reflectance"),
-                                               jnp.ones(n))
+                                               jnp.ones(n), range_falloff=falloff)
         for j, i in enumerate(idx):
             p = points[i]
             out[i] = {"crlb_mm": 1e3 * float(locked[j]), "crlb_frequency_only_mm": 1e3 * float(freq_only[j]),
@@ -187,7 +191,7 @@ def point_instrument(point: dict) -> tuple[Instrument, np.ndarray]:
 
 def monte_carlo(point: dict, trials: int = 256, seed: int = 0, frequencies_hz=None) -> dict:
     """Precision of simulate + reconstruct (ML) on a planar target at the point: `trials`
-    pixels (a square tile, independent noise), range falloff on. Optional non-uniform schedule."""
+    pixels (a square tile, independent noise), range falloff as the point says. Optional non-uniform schedule."""
     from .reconstruct import ReconstructOptions, reconstruct_array
     from .scenes import planar
     from .simulate import simulate
@@ -199,7 +203,7 @@ def monte_carlo(point: dict, trials: int = 256, seed: int = 0, frequencies_hz=No
         inst = Instrument(sweep=FrequencySweep(f), modulator=inst.modulator, sensor=inst.sensor, link=inst.link,
                           frame_rate_hz=inst.frame_rate_hz)
     side = max(2, int(math.ceil(math.sqrt(trials))))
-    scene = planar(p["distance_m"], p["reflectance"], effects=NOISE + ("range_falloff",))
+    scene = planar(p["distance_m"], p["reflectance"], effects=NOISE + (("range_falloff",) if p["range_falloff"] else ()))
     frames = simulate(scene, inst, side, side, jax.random.key(seed))
     out = reconstruct_array(frames, f, ReconstructOptions(method="ml", progress=False))
     ok = out["valid"]
@@ -341,10 +345,13 @@ def plot_sweep(rows: list[dict], names: list[str], path) -> Path:
               label="CRLB, frequency only")
     mc = np.array([float(r.get("mc_precision_mm", float("nan"))) for r in rows])
     trials = np.array([float(r.get("mc_trials", float("nan"))) for r in rows])
-    has = np.isfinite(mc)
+    valid = np.array([float(r.get("mc_valid_fraction", float("nan"))) for r in rows])
+    has = np.isfinite(mc) & (valid >= 0.5)  # a spread over a few surviving pixels would mislead
     if has.any():
-        err = mc[has] / np.sqrt(2 * np.maximum(trials[has] - 1, 1))
-        ax.errorbar(x[has], mc[has], yerr=err, fmt="o", label=f"Monte Carlo (ML), {int(np.nanmax(trials))} px each")
+        used = trials[has] * valid[has]
+        err = mc[has] / np.sqrt(2 * np.maximum(used - 1, 1))
+        ax.errorbar(x[has], mc[has], yerr=err, fmt="o",
+                    label=f"Monte Carlo (ML), {int(np.nanmax(trials))} px each (points with ≥ 50 % valid)")
     ax.set(xlabel=name, ylabel="depth precision (mm)")
     if name == "num_steps":
         rate = np.array([float(r["frame_rate_hz"]) for r in rows])
