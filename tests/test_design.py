@@ -3,6 +3,8 @@ design's constraints and optimum against exhaustive search, resumable sweeps."""
 
 import csv
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -77,16 +79,17 @@ def test_design_meets_constraints_and_is_optimal(small_design):
     _, (crlb, coarse, v1, f1) = design._solve_for_n(result.num_frames - 1, n_cap, problem)
     assert not design._meets(crlb, coarse, f1, problem, v1)
     # exhaustive search over (β, θ_b) at the optimum's sweep, power and exposure
-    mask = np.ones(result.num_frames)
-    best = np.inf
-    for beta in np.linspace(0.5, 5.0, 46):
-        for bias in np.linspace(0.1, 1.5, 57):
-            inst = design._instrument(v["probe_power_w"], v["exposure_s"], beta, bias)
-            if float(design.mean_term_snr(inst, f, mask, problem.distance_m, problem.reflectance)) < \
-                    design.MIN_MEAN_TERM_SNR:
-                continue
-            fisher = design._fisher_masked(inst, f, mask, problem.distance_m, problem.reflectance, design.NOISE, False)
-            best = min(best, float(cf.fisher.crlb_from_fisher(fisher)))
+    mask = jnp.ones(result.num_frames)
+    fj = jnp.asarray(f)
+
+    def bound(beta, bias):
+        inst = design._instrument(v["probe_power_w"], v["exposure_s"], beta, bias)
+        fisher = design._fisher_masked(inst, fj, mask, problem.distance_m, problem.reflectance, design.NOISE, False)
+        snr = design.mean_term_snr(inst, fj, mask, problem.distance_m, problem.reflectance)
+        return jnp.where(snr >= design.MIN_MEAN_TERM_SNR, cf.fisher.crlb_from_fisher(fisher), jnp.inf)
+
+    betas, biases = np.meshgrid(np.linspace(0.5, 5.0, 46), np.linspace(0.1, 1.5, 57))
+    best = float(jnp.min(jax.jit(jax.vmap(bound))(jnp.asarray(betas.ravel()), jnp.asarray(biases.ravel()))))
     assert result.crlb_m <= best * 1.01
 
 
