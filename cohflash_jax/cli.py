@@ -284,7 +284,7 @@ def cmd_calibrate_hybrid(args) -> int:
     from cohflash_jax.hybrid_fit import calibrate_hybrid, save_hybrid_report
 
     result = calibrate_hybrid(args.capture, dark_path=args.dark, flat_path=args.flat,
-                              known_distance_m=args.known_distance_m, fit_bias=args.fit_bias,
+                              known_distance_m=args.known_distance_m,
                               max_pixels=args.max_pixels, progress=not args.quiet)
     doc = result["document"]
     with warnings.catch_warnings(record=True) as caught:
@@ -450,7 +450,6 @@ def build_parser() -> argparse.ArgumentParser:
                     "per-pixel relative gain maps")
     ch.add_argument("--known-distance-m", type=float, default=None,
                     help="target distance; without it τ_sys is not identifiable")
-    ch.add_argument("--fit-bias", action="store_true", help="fit the MZM bias too (nearly degenerate with β)")
     ch.add_argument("--max-pixels", type=int, default=1024, help="strongest valid pixels used (default 1024)")
     ch.add_argument("--report", help="report figure (PNG): I/Q before/after, tone taper, drift")
     ch.add_argument("--quiet", action="store_true")

@@ -24,8 +24,8 @@ Stage 2, modulator: with the calibrated hybrid, each pixel's carrier-aligned rea
 r_p[m] = A_p·S(2π f_m τ_p; x(f_m)) + b_p is fitted in the time domain for per-pixel depth
 (A_p, b_p projected out) and the global x_0 = β/2 and roll-off u = (f_max/f_3dB)², where
 x(f) = x_0/√(1 + u·(f/f_max)²). The harmonic ratios identify β, the fundamental's taper
-over the band identifies the roll-off; the bias θ_b is fixed (from the capture) unless
-asked for, since β and θ_b are nearly degenerate through the 2nd-harmonic ratio alone.
+over the band identifies the roll-off; the bias θ_b stays fixed (from the capture), since β
+and θ_b are nearly degenerate through the 2nd-harmonic ratio.
 
 Stage 3, τ_sys: depths reconstructed with the calibration and τ_sys = 0, against a known
 target distance.
@@ -294,7 +294,7 @@ def modulator_residuals(free, args):
     params = {**fixed, **free}
     f_max = f[-1]
     x = _modulator_x(jnp.exp(params["log_x0"]), params["rolloff_u"], f, f_max)
-    w = sideband_weights(x, bias + params["bias_offset"], order)  # (N, K)
+    w = sideband_weights(x, bias, order)  # (N, K)
     tau = delay0 + 2e-3 * params["depth_mm"] / C
     cycles = f[:, None] * tau[None, :]
     s = beat_spectrum(2 * jnp.pi * (cycles - jnp.floor(cycles)), w[:, None, :])  # (N, P)
@@ -322,19 +322,23 @@ class ModulatorFit:
 
 
 def fit_modulator(frequencies_hz, r: np.ndarray, noise_var: np.ndarray, delay0_s: np.ndarray,
-                  start: MZM, fit_bias: bool = False) -> ModulatorFit:
-    """Stage 2: β and its roll-off (and θ_b if asked) from carrier-aligned sequences r (N, P)."""
+                  start: MZM) -> ModulatorFit:
+    """Stage 2: β and its roll-off from carrier-aligned sequences r (N, P); θ_b stays fixed.
+
+    (Fitting θ_b as well was tried and dropped: β and θ_b trade off through the 2nd-harmonic
+    ratio, and the joint fit came out 7σ from the true bias on a simulated capture — a
+    confident wrong number. The bias is a setting of the modulator's bias controller.)"""
     f = jnp.asarray(frequencies_hz, jnp.float64)
     f_max = float(f[-1])
     order = int(start.max_order)
     p = r.shape[1]
     x0 = 0.5 * float(start.modulation_index)
     params0 = {"depth_mm": jnp.zeros(p), "log_x0": jnp.asarray(math.log(max(x0, 1e-3))),
-               "rolloff_u": jnp.asarray(0.0), "bias_offset": jnp.asarray(0.0)}
+               "rolloff_u": jnp.asarray(0.0)}
     # the depths stay at the reconstruction's (errors of ~10 µm shift the tone's phase by
-    # ~2e-3 rad at 6 GHz: nothing the amplitudes or harmonic ratios notice), so only two or
-    # three global unknowns remain and the Jacobian is cheap
-    free = ("log_x0", "rolloff_u") + (("bias_offset",) if fit_bias else ())
+    # ~2e-3 rad at 6 GHz: nothing the amplitudes or harmonic ratios notice), so only two
+    # global unknowns remain and the Jacobian is cheap
+    free = ("log_x0", "rolloff_u")
     y0 = {k: params0[k] for k in free}
     fixed = {k: v for k, v in params0.items() if k not in free}
     args = (f, jnp.asarray(r, jnp.float64), jnp.sqrt(jnp.asarray(noise_var, jnp.float64)),
@@ -361,14 +365,7 @@ def fit_modulator(frequencies_hz, r: np.ndarray, noise_var: np.ndarray, delay0_s
         roll = Estimate(float("inf"), None, f"no roll-off detected (u = {u:.3g} ± {u_sig:.2g}); f_3dB > {bound:.3g} Hz")
     else:
         roll = Estimate(None, None, "roll-off not identifiable from these data")
-    bias_val = float(start.bias_rad) + float(val.get("bias_offset", 0.0))
-    if fit_bias:
-        b_sig = float(sig["bias_offset"])
-        bias = (Estimate(bias_val, b_sig) if b_sig < 0.1 else
-                Estimate(None, None, f"bias not identifiable (σ = {b_sig:.2g} rad): β and θ_b trade off through "
-                                     "the 2nd-harmonic ratio; fix θ_b from the modulator's bias control"))
-    else:
-        bias = Estimate(bias_val, None, "fixed (from the capture attributes or the default); --fit-bias fits it")
+    bias = Estimate(float(start.bias_rad), None, "fixed (the capture's bias_rad attribute, or the default π/4)")
     modulator = MZM(beta.value if beta.value is not None else float(start.modulation_index),
                     bias.value if bias.value is not None else float(start.bias_rad),
                     roll.value if roll.value is not None else float(start.rolloff_3db_hz), max_order=order)
@@ -450,7 +447,7 @@ def read_mean_frame(path) -> np.ndarray:
 
 
 def calibrate_hybrid(capture_path, *, dark_path=None, flat_path=None, known_distance_m: float | None = None,
-                     fit_bias: bool = False, max_pixels: int = 1024, modulator_pixels: int = 48,
+                     max_pixels: int = 1024, modulator_pixels: int = 48,
                      iterations: int = 2, inner_iterations: int = 3, min_depth_m: float = 1.0,
                      progress: bool = True) -> dict:
     """The whole calibration → a `cohflash-calibration` document (dict) plus per-pixel maps.
@@ -528,7 +525,7 @@ def calibrate_hybrid(capture_path, *, dark_path=None, flat_path=None, known_dist
         amp[good] = np.abs(fit.amplitudes)
         strongest = good[np.argsort(-amp[good])][:modulator_pixels]
         mod_fit = fit_modulator(freqs, np.asarray(r)[:, strongest], np.asarray(noise_var)[strongest],
-                                2 * depth[strongest] / C, modulator, fit_bias)
+                                2 * depth[strongest] / C, modulator)
         modulator = mod_fit.modulator
     offsets, offset_sigma, offset_note = fit_offsets(port_means[:, good], stats, fit, dark)
     if fit.identified:

@@ -137,3 +137,18 @@ def test_sweep_cli_and_bad_axes(tmp_path):
     assert main(["sweep", "--axis", "distance_m=a:b", "--out", str(tmp_path / "x.csv")]) == 2
     assert main(["sweep", "--axis", "bandwidth_ghz=2,3", "--set", "step_mhz=1", "--out", str(tmp_path / "x.csv")]) == 2
     assert not (tmp_path / "x.csv").exists()
+
+
+def test_design_cli(small_design, tmp_path):
+    """The command reports the optimum and its active constraints, validates it, writes JSON;
+    an unreachable target says why and exits 1."""
+    import json
+
+    out = tmp_path / "design.json"
+    assert main(["design", "--target-precision-mm", "1.0", "--max-range-m", "38", "--max-frequency-ghz", "6",
+                 "--max-frames", "256", "--validate-trials", "64", "--out", str(out), "--quiet"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["feasible"] and doc["num_frames"] == small_design[1].num_frames
+    assert doc["unambiguous_range_m"] >= 38.0 and doc["validation"]["mc_trials"] == 64
+    assert main(["design", "--target-precision-mm", "0.001", "--max-range-m", "38", "--max-frequency-ghz", "6",
+                 "--max-frames", "256", "--validate-trials", "0", "--quiet"]) == 1

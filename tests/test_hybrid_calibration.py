@@ -239,3 +239,4 @@ def test_turbulence_uncalibrated_flagged_calibrated_valid(calibrations, instrume
             assert not np.any(wild & out["valid"])
             if calib is not None:
                 assert out["valid"].mean() > 0.95
+
