@@ -359,7 +359,7 @@ def cmd_sweep(args) -> int:
 def cmd_design(args) -> int:
     import json
 
-    from cohflash_jax.design import DesignProblem, design_report, optimise_design
+    from cohflash_jax.design import DesignProblem, design_report
 
     problem = DesignProblem(args.target_precision_mm * 1e-3, args.max_range_m, args.distance_m, args.reflectance,
                             args.max_power_mw * 1e-3, args.frame_rate_hz, args.min_frequency_ghz * 1e9,

@@ -50,7 +50,7 @@ from jaxtyping import Array, Float
 
 from .capture import Capture, CaptureError
 from .constants import SPEED_OF_LIGHT_M_PER_S as C
-from .estimate.iq import _moving_average, align_carrier_static, derotate, iq_from_frames, track_carrier_drift
+from .estimate.iq import _moving_average, align_carrier_static, derotate, iq_from_frames
 from .hybrid import Hybrid
 from .modulator import MZM, beat_spectrum, sideband_weights
 

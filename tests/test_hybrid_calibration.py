@@ -4,7 +4,6 @@ calibration removes the depth bias, degenerate data are refused plainly, files r
 import json
 
 import h5py
-import jax
 import numpy as np
 import pytest
 
