@@ -522,7 +522,11 @@ def main(argv=None) -> int:
         print(f"cohflash {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted; no partial output was kept", file=sys.stderr)
+        if args.command == "sweep":
+            print(f"interrupted; the finished points are in {args.out}: rerun the same command to resume",
+                  file=sys.stderr)
+        else:
+            print("interrupted; no partial output was kept", file=sys.stderr)
         return 130
     except BrokenPipeError:  # e.g. `cohflash scenes | head`
         sys.stderr.close()
