@@ -24,7 +24,6 @@ import dataclasses
 import functools
 import itertools
 import math
-import os
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -591,9 +590,6 @@ def optimise_design(problem: DesignProblem, progress: bool = True) -> DesignResu
     n, z, crlb, coarse, v, f = best
     return DesignResult(n, n / problem.frame_rate_hz, crlb, coarse, v, f, _active(v, f, n, coarse, problem), True)
 
-
-def default_workers() -> int:
-    return max(1, (os.cpu_count() or 2) - 1)
 
 
 def design_point(result: DesignResult, problem: DesignProblem) -> dict:

@@ -313,13 +313,13 @@ def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibrati
 
     registered = None
     if registration_maps is not None:
-        from .registered import RegisteredTiles, register_dark
+        from .registered import RegisteredTiles, register_pixel_map
 
         registered = RegisteredTiles(capture, registration_maps, rows)
         if dark is not None:
-            dark = register_dark(dark, registration_maps)
+            dark = register_pixel_map(dark, registration_maps)
         if gain_map is not None:
-            gain_map = register_dark(gain_map, registration_maps)
+            gain_map = register_pixel_map(gain_map, registration_maps)
 
     def map_tile(arr, r0, r1, fill):
         """Rows r0:r1 of a (4, H, W) per-pixel map, padded to the tile shape → (4, P)."""
@@ -332,18 +332,18 @@ def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibrati
     def tile_inputs(r0):
         r1 = min(h, r0 + rows)
         if registered is not None:
-            return registered.tile(r0, None) + (map_tile(dark, r0, r1, 0.0), map_tile(gain_map, r0, r1, 1.0))
+            return registered.tile(r0) + (map_tile(dark, r0, r1, 0.0), map_tile(gain_map, r0, r1, 1.0))
         block = capture.read_tile(slice(r0, r1))
         if r1 - r0 < rows:  # pad the last tile so every tile has one compiled shape
             block = np.concatenate([block, np.zeros((4, n, rows - (r1 - r0), w), block.dtype)], axis=2)
-        return (r1, jnp.asarray(block.reshape(4, n, rows * w)), None, None,
+        return (r1, jnp.asarray(block.reshape(4, n, rows * w)), None,
                 map_tile(dark, r0, r1, 0.0), map_tile(gain_map, r0, r1, 1.0))
 
     starts = list(range(0, h, rows))
     with tqdm(total=h * w, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True) as bar:
         nxt = tile_inputs(starts[0])
         for idx, r0 in enumerate(starts):
-            r1, block, _, data_status, d, g = nxt
+            r1, block, data_status, d, g = nxt
             result = process_tile(cfg, block, d, data_status, g)  # dispatched asynchronously
             if idx + 1 < len(starts):
                 nxt = tile_inputs(starts[idx + 1])  # read the next tile while this one computes

@@ -67,8 +67,8 @@ class RegisteredTiles:
         out[:, lo - start:hi - start] = block
         return out.reshape(self.n, -1)
 
-    def tile(self, r0, dark=None):
-        """(r1, frames (4, N, P) float32, dark (4, P) | None, status (P,) int8)."""
+    def tile(self, r0):
+        """(r1, frames (4, N, P) float32, status (P,) int8)."""
         r1 = min(self.h, r0 + self.rows)
         first = self.capture.frames[0, :, r0:r1, :]
         if r1 - r0 < self.rows:
@@ -83,19 +83,15 @@ class RegisteredTiles:
                 status[np.any(sat_src[idx] & (wts > 0), axis=1)] = 5
             ccds.append(_bilinear(jnp.asarray(band), jnp.asarray(idx), jnp.asarray(wts)))
             status[outside] = OUTSIDE
-        d = None
-        if dark is not None:
-            d = np.zeros((4, self.rows * self.w), np.float32)
-            d[:, : (r1 - r0) * self.w] = dark[:, r0:r1].reshape(4, -1)
-            d = jnp.asarray(d)
-        return r1, jnp.stack(ccds), d, jnp.asarray(status)
+        return r1, jnp.stack(ccds), jnp.asarray(status)
 
 
-def register_dark(dark: np.ndarray, maps) -> np.ndarray:
-    """Dark frames of CCDs 2–4 resampled onto CCD 1's grid (bilinear)."""
+def register_pixel_map(per_ccd: np.ndarray, maps) -> np.ndarray:
+    """A per-CCD pixel map (4, H, W) — dark frame, offset or gain map — with CCDs 2–4
+    resampled onto CCD 1's grid (bilinear)."""
     import cv2
 
-    out = dark.astype(np.float32).copy()
+    out = per_ccd.astype(np.float32).copy()
     for k, (mx, my) in enumerate(maps, start=1):
         out[k] = cv2.remap(out[k], mx.astype(np.float32), my.astype(np.float32), cv2.INTER_LINEAR,
                            borderMode=cv2.BORDER_REPLICATE)
