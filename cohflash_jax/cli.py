@@ -321,14 +321,14 @@ def cmd_calibrate_hybrid(args) -> int:
 
 
 def _assignments(items) -> dict:
+    from cohflash_jax.design import PARAMETERS
+
     out = {}
     for item in items or []:
         for part in item.split(","):
             if "=" not in part:
                 raise ValueError(f"expected NAME=VALUE, got {part!r}")
             k, v = part.split("=", 1)
-            from cohflash_jax.design import PARAMETERS
-
             if k.strip() not in PARAMETERS:
                 raise ValueError(f"unknown parameter {k.strip()!r}; known: {', '.join(PARAMETERS)}")
             out[k.strip()] = float(v)
