@@ -200,6 +200,12 @@ class Capture:
         """Frames of a pixel tile, (4, N, h, w), in the file's dtype."""
         return self.frames[:, :, rows, cols]
 
+    def read_tile_into(self, out: np.ndarray, rows: slice) -> None:
+        """Frames of rows `rows` (all columns) read straight into the first rows of `out`
+        (4, N, ≥h, W), a C-contiguous array of the file's dtype: no temporary array."""
+        count = len(range(*rows.indices(self.shape[1])))
+        self.frames.read_direct(out, np.s_[:, :, rows, :], np.s_[:, :, :count, :])
+
     def close(self):
         self._file.close()
 

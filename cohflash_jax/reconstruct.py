@@ -1,6 +1,9 @@
 """Depth reconstruction of a capture, streamed in pixel tiles.
 
-Per tile (one compiled function per tile shape): data checks → I/Q (nominal or calibrated
+A capture is read in row tiles (the file's chunk rows) into two reused buffers; each tile is
+cut into sub-tiles of a few hundred pixels (`sub_tile_pixels`) whose frames fit in cache,
+dispatched asynchronously so they run concurrently on the CPU's cores. Per sub-tile (one
+compiled function per sub-tile shape): data checks → I/Q (nominal or calibrated
 hybrid) → carrier alignment (static or tracked) → one unwindowed unitary rFFT over the
 frame index; its periodic-Hann spectrum (a 3-tap convolution of the same bins) gives the
 coarse peak; `dft` reads depth off the peak bin, `interp` interpolates it, `ml` fits the
@@ -265,7 +268,8 @@ def build_config(frequencies_hz, hybrid: Hybrid, modulator: MZM, system_delay_s:
 def reconstruct_array(frames, frequencies_hz, options: ReconstructOptions | None = None, *,
                       hybrid: Hybrid | None = None, modulator: MZM | None = None, system_delay_s: float = 0.0,
                       dark=None, saturation_dn=None, carrier_phase_rad=None) -> dict:
-    """Reconstruct in-memory frames (4, N, H, W) → dict of (H, W) arrays (tests, small data).
+    """Reconstruct in-memory frames (4, N, H, W) → dict of (H, W) arrays, in sub-tiles
+    dispatched asynchronously (as `reconstruct_capture` does within each streamed tile).
     `carrier_phase_rad` (N,): a known common carrier drift to remove (calibration)."""
     options = options or ReconstructOptions(progress=False)
     frames = np.asarray(frames)
@@ -273,10 +277,82 @@ def reconstruct_array(frames, frequencies_hz, options: ReconstructOptions | None
         raise ValueError(f"frames must have shape (4, N, H, W), got {frames.shape}")
     _, n, h, w = frames.shape
     cfg = build_config(frequencies_hz, hybrid or Hybrid(), modulator or MZM(), system_delay_s, saturation_dn, options)
-    d = None if dark is None else jnp.asarray(np.asarray(dark, np.float32).reshape(4, h * w))
+    d = None if dark is None else np.asarray(dark, np.float32).reshape(4, h * w)
     carrier = None if carrier_phase_rad is None else jnp.asarray(carrier_phase_rad)
-    out = process_tile(cfg, jnp.asarray(frames.reshape(4, n, h * w)), d, None, None, carrier)
-    return {k: np.asarray(v).reshape(h, w) for k, v in out.items()}
+    out = gather_tile(dispatch_tile(cfg, frames.reshape(4, n, h * w), d, None, None, sub_tile_pixels(h * w, n), carrier))
+    return {k: v.reshape(h, w) for k, v in out.items()}
+
+
+def sub_tile_pixels(num_pixels: int, num_frames: int, budget_bytes: int = 12 * 2**20, min_pieces: int = 4) -> int:
+    """Pixels per dispatched sub-tile: the uint16 frames of a sub-tile (4·N·2 bytes a pixel)
+    fit in ~12 MiB, so its I/Q, moment and FFT passes run from cache, and a tile gives at
+    least `min_pieces` sub-tiles, whose dispatches run concurrently on the CPU's cores
+    (measured on 2 cores, N = 3000: 10240-px tiles 0.87 s, 640-px sub-tiles 0.38 s per
+    10240 px for `dft`)."""
+    by_memory = budget_bytes // (8 * max(1, num_frames))
+    return int(max(1, min(num_pixels, by_memory, max(256, -(-num_pixels // min_pieces)))))
+
+
+def dispatch_tile(cfg: TileConfig, frames, dark=None, data_status=None, gain=None, sub_px: int | None = None,
+                  carrier_phase_rad=None):
+    """`process_tile` over a tile (4, N, P) in sub-tiles of `sub_px` pixels, each dispatched
+    asynchronously (the last padded to the same shape: one compilation). Returns the
+    per-sub-tile result dicts; `gather_tile` joins them."""
+    p = frames.shape[-1]
+    sub = p if sub_px is None else min(sub_px, p)
+    pieces = -(-p // sub)
+    pad = pieces * sub - p
+
+    def piece(arr, k):
+        if arr is None:
+            return None
+        part = arr[..., k * sub:(k + 1) * sub]
+        if part.shape[-1] < sub:
+            widths = [(0, 0)] * (part.ndim - 1) + [(0, sub - part.shape[-1])]
+            part = np.pad(np.asarray(part), widths)
+        return jnp.asarray(part)
+
+    out = []
+    for k in range(pieces):
+        out.append(process_tile(cfg, piece(frames, k), piece(dark, k), piece(data_status, k), piece(gain, k),
+                                carrier_phase_rad))
+    return out, p
+
+
+def gather_tile(results) -> dict:
+    """Join `dispatch_tile`'s results → dict of (P,) NumPy arrays (blocks until computed)."""
+    parts, p = results
+    return {k: np.concatenate([np.asarray(r[k]) for r in parts])[:p] for k in parts[0]}
+
+
+def _collect(pending, outputs, h, w, rows):
+    results, r0, r1 = pending
+    for k, v in gather_tile(results).items():
+        arr = v.reshape(rows, w)[: r1 - r0]
+        outputs.setdefault(k, np.empty((h, w), arr.dtype))[r0:r1] = arr
+
+
+class _BlockReader:
+    """Row tiles of a capture read into two reused buffers. On the CPU a contiguous NumPy
+    array becomes a device array without a copy, so a buffer is reused only after the tile
+    read into it has been gathered (the caller collects tile k before reading tile k + 2).
+    Allocating a fresh ~250 MB array per
+    tile costs more than the read itself on a cold VM (first touch of its memory)."""
+
+    def __init__(self, capture: Capture, rows: int):
+        n, h, w = capture.shape
+        self.capture, self.rows, self.h = capture, rows, h
+        self.buffers = [np.zeros((4, n, rows, w), capture.frames.dtype) for _ in range(2)]
+        self.count = 0
+
+    def read(self, r0: int) -> np.ndarray:
+        r1 = min(self.h, r0 + self.rows)
+        buf = self.buffers[self.count % 2]
+        self.count += 1
+        if r1 - r0 < self.rows:
+            buf[:, :, r1 - r0:] = 0  # pad the last tile so every tile has one compiled shape
+        self.capture.read_tile_into(buf, slice(r0, r1))
+        return buf.reshape(buf.shape[0], buf.shape[1], -1)
 
 
 def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibration: Calibration | None = None,
@@ -327,30 +403,30 @@ def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibrati
             return None
         block = np.full((4, rows, w), fill, np.float32)
         block[:, : r1 - r0] = arr[:, r0:r1]
-        return jnp.asarray(block.reshape(4, rows * w))
+        return block.reshape(4, rows * w)
+
+    reader = None if registered is not None else _BlockReader(capture, rows)
 
     def tile_inputs(r0):
         r1 = min(h, r0 + rows)
         if registered is not None:
             return registered.tile(r0) + (map_tile(dark, r0, r1, 0.0), map_tile(gain_map, r0, r1, 1.0))
-        block = capture.read_tile(slice(r0, r1))
-        if r1 - r0 < rows:  # pad the last tile so every tile has one compiled shape
-            block = np.concatenate([block, np.zeros((4, n, rows - (r1 - r0), w), block.dtype)], axis=2)
-        return (r1, jnp.asarray(block.reshape(4, n, rows * w)), None,
-                map_tile(dark, r0, r1, 0.0), map_tile(gain_map, r0, r1, 1.0))
+        return (r1, reader.read(r0), None, map_tile(dark, r0, r1, 0.0), map_tile(gain_map, r0, r1, 1.0))
 
     starts = list(range(0, h, rows))
+    sub_px = sub_tile_pixels(rows * w, n)
     with tqdm(total=h * w, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True) as bar:
-        nxt = tile_inputs(starts[0])
-        for idx, r0 in enumerate(starts):
-            r1, block, data_status, d, g = nxt
-            result = process_tile(cfg, block, d, data_status, g)  # dispatched asynchronously
-            if idx + 1 < len(starts):
-                nxt = tile_inputs(starts[idx + 1])  # read the next tile while this one computes
-            for k, v in result.items():
-                arr = np.asarray(v).reshape(rows, w)[: r1 - r0]
-                outputs.setdefault(k, np.empty((h, w), arr.dtype))[r0:r1] = arr
-            bar.update((r1 - r0) * w)
+        pending = None
+        for r0 in starts:
+            r1, block, data_status, d, g = tile_inputs(r0)
+            # dispatched asynchronously: the next tile is read while this one computes
+            results = dispatch_tile(cfg, block, d, data_status, g, sub_px)
+            if pending is not None:
+                _collect(pending, outputs, h, w, rows)
+                bar.update((pending[2] - pending[1]) * w)
+            pending = (results, r0, r1)
+        _collect(pending, outputs, h, w, rows)
+        bar.update((pending[2] - pending[1]) * w)
     meta = {"method": options.method, "ambiguity_m": cfg.ambiguity_m, "bin_depth_m": cfg.bin_depth_m,
             "carrier_alignment": "tracked" if options.tracking else "static",
             "snr_threshold_db": options.snr_threshold_db, "dtype": options.dtype,

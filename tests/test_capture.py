@@ -65,6 +65,12 @@ def test_read_tile_reads_the_requested_pixels(staircase_capture):
         tile = cap.read_tile(slice(10, 14), slice(5, 8))
         assert tile.shape == (4, 512, 4, 3)
         np.testing.assert_array_equal(tile, cap.frames[:, :, 10:14, 5:8])
+        # a partial tile read straight into the first rows of a larger reused buffer
+        n, h, w = cap.shape
+        buf = np.full((4, n, 6, w), 7, np.uint16)
+        cap.read_tile_into(buf, slice(h - 4, h))
+        np.testing.assert_array_equal(buf[:, :, :4], cap.frames[:, :, h - 4:h])
+        assert np.all(buf[:, :, 4:] == 7)
 
 
 def _write(path, **over):

@@ -179,24 +179,30 @@ def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_dep
 
     def polish(start):
         sol = optx.least_squares(lambda y_, _: residual(y_), solver, start, max_steps=max_steps, throw=False)
-        coef, res = _project(_design(model, coarse_depth_m + 1e-3 * sol.value, tables, omega), y)
-        return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"], jnp.sum(res**2), coef[1]
+        return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
-    values, oks, steps, finals, amps = jax.vmap(polish)(starts)
-    finals = jnp.where(jnp.isfinite(finals), finals, jnp.inf)
     if candidates > 1:
+        values, oks, steps = jax.vmap(polish)(starts)
+        coefs, residuals = jax.vmap(lambda v: _project(_design(model, coarse_depth_m + 1e-3 * v, tables, omega), y))(values)
+        finals = jnp.sum(residuals**2, axis=-1)
+        finals = jnp.where(jnp.isfinite(finals), finals, jnp.inf)
         # Where ripples are narrower than a bin, (A, τ) and (−A, τ + half a ripple) fit almost
         # equally: the carrier alignment made A·w_0 > 0, so prefer a positive amplitude.
+        amps = coefs[:, 1]
         finals = jnp.where((amps >= 0) | jnp.all(amps < 0), finals, jnp.inf)
-    best = jnp.argmin(finals)
-    offset_mm = values[best]
+        best = jnp.argmin(finals)
+        offset_mm, ok, num_steps = values[best], oks[best], steps[best]
+    else:  # one basin: no comparison, so its cost is computed once, below
+        offset_mm, ok, num_steps = polish(starts[0])
     depth = coarse_depth_m + 1e-3 * offset_mm
-    design = _design(model, depth, tables, omega)
+    # the design and its derivative in depth from one JVP (the Jacobian's depth column)
+    design, d_design = jax.jvp(lambda d: _design(model, d, tables, omega), (depth,), (jnp.ones_like(depth),))
+    d_tone = d_design[:, 1]
     coef, res = _project(design, y)
+    cost = jnp.sum(res**2)
     # Fisher information of (depth, c, A): components of a unitary DFT of white noise of
     # variance σ² carry σ²/2 each (the weights ω already account for DC/Nyquist bins).
-    # Jacobian of the model in (depth, c, A): the design's two columns and one JVP in depth
-    d_tone = jax.jvp(lambda d: _design(model, d, tables, omega)[:, 1], (depth,), (jnp.ones_like(depth),))[1]
+    # Jacobian of the model in (depth, c, A): the design's two columns and the JVP in depth
     jac = jnp.stack([coef[1] * scale * d_tone, design[:, 0], design[:, 1]], axis=1)
     fisher = jac.T @ jac / (0.5 * jnp.maximum(noise_var, 1e-30))
     # σ² of depth = [F⁻¹]₀₀ = 1/(F₀₀ − F₀ᵣ F_rr⁻¹ F_r0): Schur complement with an explicit 2×2 inverse
@@ -205,8 +211,7 @@ def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_dep
     inv = jnp.array([[frr[1, 1], -frr[0, 1]], [-frr[1, 0], frr[0, 0]]]) / det
     schur = fisher[0, 0] - fisher[0, 1:] @ inv @ fisher[1:, 0]
     sigma = jnp.where(schur > 0, 1 / jnp.sqrt(jnp.maximum(schur, 1e-300)), jnp.inf)
-    return FitResult(depth, coef[0] * scale, coef[1] * scale, sigma, oks[best] & jnp.isfinite(finals[best]), steps[best],
-                     jnp.sum(res**2) * scale**2)
+    return FitResult(depth, coef[0] * scale, coef[1] * scale, sigma, ok & jnp.isfinite(cost), num_steps, cost * scale**2)
 
 
 def refine_ml_uniform(model: UniformModel, windows, k0, coarse_depth_m, noise_var, *,
