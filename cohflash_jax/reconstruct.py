@@ -301,7 +301,6 @@ def dispatch_tile(cfg: TileConfig, frames, dark=None, data_status=None, gain=Non
     p = frames.shape[-1]
     sub = p if sub_px is None else min(sub_px, p)
     pieces = -(-p // sub)
-    pad = pieces * sub - p
 
     def piece(arr, k):
         if arr is None:
