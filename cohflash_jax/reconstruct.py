@@ -140,6 +140,9 @@ def _invert_uniform(cfg: TileConfig, r, noise_var):
         finite_fit = jnp.isfinite(depth) & jnp.isfinite(sigma) & jnp.isfinite(amplitude)
         converged = fit.converged
         wandered = jnp.abs(depth - coarse) > 2 * cfg.bin_depth_m
+        # a fit that ran off (seen at ~7 dB: 1e14 m) is flagged out_of_range and reports the
+        # coarse depth instead, so depth maps of flagged pixels stay within the interval
+        depth = jnp.where(wandered, coarse, depth)
         # reduced χ² of the window fit: each unitary bin holds noise of variance σ²/2 per
         # component; 2W real residuals less the three fitted unknowns
         # (noise floored at 1e-9 of the window's mean power: noiseless data have rounding-level

@@ -105,6 +105,9 @@ def test_below_threshold_pixels_are_flagged_not_wild(paper_instrument, noise_eff
         assert np.all(err[valid] < 6 * out["sigma_m"][valid])  # nothing wild is marked valid
         for k in ("depth_m", "sigma_m", "amplitude", "snr"):
             assert np.all(np.isfinite(out[k]))
+        # flagged pixels keep sane depths too: within the unambiguous interval ± a few bins
+        ambiguity = C / (4 * np.diff(paper_instrument.sweep.frequencies_hz)[0])
+        assert np.all((out["depth_m"] > -1.0) & (out["depth_m"] < ambiguity + 1.0))
 
 
 def test_zero_echo_is_flagged_everywhere_without_nan(paper_instrument, noise_effects, simulate_pixels):
