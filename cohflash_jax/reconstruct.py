@@ -102,6 +102,9 @@ def process_tile(cfg: TileConfig, frames, dark, data_status=None, gain=None, car
     else:
         depth, amplitude, sigma, coarse, converged, finite_fit, wandered = _invert_nonuniform(cfg, r, noise_var)
         chi2 = jnp.full(depth.shape, -1.0)
+    # a fit that ran off (seen at ~7 dB: 1e14 m) is flagged out_of_range and reports the
+    # coarse depth instead, so depth maps of flagged pixels stay within the interval
+    depth = jnp.where(wandered, coarse, depth)
     snr = n * (amplitude * cfg.model.weights[cfg.dominant_order]) ** 2 / jnp.maximum(noise_var, 1e-30)
     out_of_range = (depth < 0) | (depth >= cfg.ambiguity_m) | wandered
     status = jnp.full(depth.shape, OK, jnp.int8)
@@ -140,9 +143,6 @@ def _invert_uniform(cfg: TileConfig, r, noise_var):
         finite_fit = jnp.isfinite(depth) & jnp.isfinite(sigma) & jnp.isfinite(amplitude)
         converged = fit.converged
         wandered = jnp.abs(depth - coarse) > 2 * cfg.bin_depth_m
-        # a fit that ran off (seen at ~7 dB: 1e14 m) is flagged out_of_range and reports the
-        # coarse depth instead, so depth maps of flagged pixels stay within the interval
-        depth = jnp.where(wandered, coarse, depth)
         # reduced χ² of the window fit: each unitary bin holds noise of variance σ²/2 per
         # component; 2W real residuals less the three fitted unknowns
         # (noise floored at 1e-9 of the window's mean power: noiseless data have rounding-level
@@ -327,19 +327,21 @@ def gather_tile(results) -> dict:
     return {k: np.concatenate([np.asarray(r[k]) for r in parts])[:p] for k in parts[0]}
 
 
-def _collect(pending, outputs, h, w, rows):
+def _collect(pending, outputs, h, w, rows, bar):
+    """Gather a dispatched tile into rows r0:r1 of `outputs` and advance the progress bar."""
     results, r0, r1 = pending
     for k, v in gather_tile(results).items():
         arr = v.reshape(rows, w)[: r1 - r0]
         outputs.setdefault(k, np.empty((h, w), arr.dtype))[r0:r1] = arr
+    bar.update((r1 - r0) * w)
 
 
 class _BlockReader:
     """Row tiles of a capture read into two reused buffers. On the CPU a contiguous NumPy
     array becomes a device array without a copy, so a buffer is reused only after the tile
     read into it has been gathered (the caller collects tile k before reading tile k + 2).
-    Allocating a fresh ~250 MB array per
-    tile costs more than the read itself on a cold VM (first touch of its memory)."""
+    Allocating a fresh ~250 MB array per tile costs more than the read itself on a cold VM
+    (first touch of its memory)."""
 
     def __init__(self, capture: Capture, rows: int):
         n, h, w = capture.shape
@@ -424,11 +426,9 @@ def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibrati
             # dispatched asynchronously: the next tile is read while this one computes
             results = dispatch_tile(cfg, block, d, data_status, g, sub_px)
             if pending is not None:
-                _collect(pending, outputs, h, w, rows)
-                bar.update((pending[2] - pending[1]) * w)
+                _collect(pending, outputs, h, w, rows, bar)
             pending = (results, r0, r1)
-        _collect(pending, outputs, h, w, rows)
-        bar.update((pending[2] - pending[1]) * w)
+        _collect(pending, outputs, h, w, rows, bar)
     meta = {"method": options.method, "ambiguity_m": cfg.ambiguity_m, "bin_depth_m": cfg.bin_depth_m,
             "carrier_alignment": "tracked" if options.tracking else "static",
             "snr_threshold_db": options.snr_threshold_db, "dtype": options.dtype,
