@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cohflash_jax.design import PARAMETERS
+
 
 def _size(text: str) -> tuple[int, int]:
     try:
@@ -321,8 +323,6 @@ def cmd_calibrate_hybrid(args) -> int:
 
 
 def _assignments(items) -> dict:
-    from cohflash_jax.design import PARAMETERS
-
     out = {}
     for item in items or []:
         for part in item.split(","):
@@ -458,9 +458,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw = sub.add_parser("sweep", help="depth precision (CRLB from the autodiff Fisher information, and Monte "
                         "Carlo) over a grid of design parameters → CSV (+ figure); resumable")
     sw.add_argument("--axis", action="append", required=True, metavar="NAME=START:STOP:COUNT[:log] | NAME=V1,V2,…",
-                    help="a swept parameter (repeat for a grid): " + ", ".join(
-                        ["bandwidth_ghz", "start_ghz", "step_mhz", "num_steps", "distance_m", "probe_power_mw",
-                         "exposure_ms", "modulation_index", "bias_rad", "reflectance", "frame_rate_hz"]))
+                    help="a swept parameter (repeat for a grid): " + ", ".join(PARAMETERS))
     sw.add_argument("--set", action="append", metavar="NAME=VALUE[,…]", help="fixed parameters (default: the paper's)")
     sw.add_argument("--mc", action="append", metavar="NAME=VALUE,…", help="grid point that also gets a Monte Carlo run")
     sw.add_argument("--mc-all", action="store_true", help="Monte Carlo at every grid point")
