@@ -12,7 +12,7 @@ The model is linear in (c, A), so those are projected out (variable projection):
 nonlinear fit is one unknown, the depth offset from the coarse estimate in millimetres
 (fitting τ in seconds stalls the optimiser; DESIGN.md §3). A grid of the projected cost
 over ±1.5 bins picks the basin of the right likelihood ripple (period c/(2 f̄)) before
-Levenberg–Marquardt polishes it. float64 throughout: it is ~20 numbers per pixel.
+Newton's method polishes it (`polish_depth`). float64 throughout: it is ~20 numbers per pixel.
 """
 
 from __future__ import annotations
@@ -23,16 +23,33 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Complex, Float, Int
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S
 
 C = SPEED_OF_LIGHT_M_PER_S
-# Gauss–Newton on one unknown (the basin search has already placed it in the right basin);
-# normal equations with a Cholesky solve: a 1×1 system, not a QR of the W×1 Jacobian.
-_SOLVER = lambda: optx.GaussNewton(rtol=1e-5, atol=1e-4, linear_solver=lx.Normal(lx.Cholesky()))
+# A polish stops once its step is below this fraction of the pixel's predicted σ (finer steps
+# move the depth by noise-irrelevant amounts), and never above 0.1 µm where σ is that small.
+STEP_TOLERANCE_SIGMA = 1e-2
+STEP_TOLERANCE_FLOOR_MM = 1e-4
+
+
+def polish_depth(cost, start_mm, *, ceiling, max_steps: int, tolerance_mm=STEP_TOLERANCE_FLOOR_MM):
+    """Minimise a 1-D least-squares cost (depth offset in mm) from a start inside the right
+    basin: optimistix Newton on its slope, with the exact second derivative (forward over
+    forward). Gauss–Newton drops the residual-curvature term, which at finite SNR makes its
+    convergence linear: measured on the 35-frame 10 Hz mode (2560 px), Gauss–Newton took 5.4
+    steps on average and 12–16 for the slowest pixel of a batch — and a vmapped solve runs as
+    long as its slowest pixel — against 2.2 and 3–5 for Newton, to the same depths (≤ 1e-4 mm).
+    Newton finds maxima as readily as minima, so a polish whose cost ends above `ceiling` (the
+    cost at a point of the start's basin, e.g. its grid point) climbed and is not converged.
+    Returns (offset_mm, converged, num_steps)."""
+    slope = lambda x, _: jax.jvp(cost, (x,), (jnp.ones_like(x),))[1]
+    solver = optx.Newton(rtol=1e-5, atol=tolerance_mm)
+    sol = optx.root_find(slope, solver, start_mm, max_steps=max_steps, throw=False)
+    ok = (sol.result == optx.RESULTS.successful) & (cost(sol.value) <= ceiling * (1 + 1e-9) + 1e-300)
+    return sol.value, ok, sol.stats["num_steps"]
 
 
 class WindowTables(eqx.Module):
@@ -76,6 +93,11 @@ class UniformModel(eqx.Module):
     weights: Float[Array, " K"]  # sideband weights w_0..w_nmax
     system_delay_s: float = 0.0
     num_frames: int = eqx.field(static=True, default=0)
+
+    def sum_angular_frequency_sq(self) -> float:
+        """Σ_m (2π f_m)² over the sweep (rad²/s²), the sum in the phase-locked Fisher information."""
+        n, f0, df = self.num_frames, self.start_hz, self.step_hz
+        return (2 * math.pi) ** 2 * (n * f0**2 + f0 * df * n * (n - 1) + df**2 * (n - 1) * n * (2 * n - 1) / 6)
 
     def delay(self, depth_m):
         return self.system_delay_s + 2.0 * depth_m / C
@@ -175,14 +197,18 @@ def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_dep
     shift = jnp.where(amplitude > 0, -jnp.arctan2(b_sin, b_cos) / theta, 0.0)  # in grid spacings
     order = jnp.argsort(jnp.where(local_min, vertex, jnp.inf))[:candidates]
     starts = grid_mm[order] + jnp.clip(shift[order], -1.0, 1.0) * spacing
-    solver = _SOLVER()
+    # step tolerance from the closed-form phase-locked bound at the window's peak amplitude
+    # (a tone a·cos has unitary DFT peak a·√N/2 on a bin)
+    tone_amplitude = 2 * scale / math.sqrt(n)
+    sigma_pred_mm = 1e3 * C / 2 * jnp.sqrt(noise_var / (0.5 * tone_amplitude**2 * model.sum_angular_frequency_sq()))
+    tolerance_mm = jnp.maximum(STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA * sigma_pred_mm)
 
-    def polish(start):
-        sol = optx.least_squares(lambda y_, _: residual(y_), solver, start, max_steps=max_steps, throw=False)
-        return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+    def polish(start, ceiling):
+        return polish_depth(lambda x: jnp.sum(residual(x) ** 2), start, ceiling=ceiling, max_steps=max_steps,
+                            tolerance_mm=tolerance_mm)
 
     if candidates > 1:
-        values, oks, steps = jax.vmap(polish)(starts)
+        values, oks, steps = jax.vmap(polish)(starts, costs[order])
         coefs, residuals = jax.vmap(lambda v: _project(_design(model, coarse_depth_m + 1e-3 * v, tables, omega), y))(values)
         finals = jnp.sum(residuals**2, axis=-1)
         finals = jnp.where(jnp.isfinite(finals), finals, jnp.inf)
@@ -193,7 +219,7 @@ def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_dep
         best = jnp.argmin(finals)
         offset_mm, ok, num_steps = values[best], oks[best], steps[best]
     else:  # one basin: no comparison, so its cost is computed once, below
-        offset_mm, ok, num_steps = polish(starts[0])
+        offset_mm, ok, num_steps = polish(starts[0], costs[order[0]])
     depth = coarse_depth_m + 1e-3 * offset_mm
     # the design and its derivative in depth from one JVP (the Jacobian's depth column)
     design, d_design = jax.jvp(lambda d: _design(model, d, tables, omega), (depth,), (jnp.ones_like(depth),))

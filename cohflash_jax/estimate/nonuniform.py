@@ -13,11 +13,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, Float
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
-from .ml import FitResult, _SOLVER
+from .ml import FitResult, polish_depth
 
 
 def depth_grid(frequencies_hz: np.ndarray, max_depth_m: float, points_per_envelope: int = 4) -> np.ndarray:
@@ -52,7 +51,7 @@ def refine_time_domain(r: Float[Array, " N"], frequencies_hz: Float[Array, " N"]
                        coarse_depth_m, noise_var, *, system_delay_s: float, grid_half_width_m: float,
                        grid_points: int, max_steps: int) -> FitResult:
     """ML depth of one pixel over all frames: r[m] = c + A·Σ_{n≥1} 2 w_n cos(2π n f_m τ), with
-    (c, A) projected out, a basin grid, then optimistix Gauss–Newton on the depth offset (mm)."""
+    (c, A) projected out, a basin grid, then `polish_depth` on the depth offset (mm)."""
     from .ml import _project
 
     f = frequencies_hz.astype(jnp.float64)
@@ -73,8 +72,9 @@ def refine_time_domain(r: Float[Array, " N"], frequencies_hz: Float[Array, " N"]
 
     grid_mm = jnp.linspace(-1e3 * grid_half_width_m, 1e3 * grid_half_width_m, grid_points)
     costs = jax.vmap(lambda g: jnp.sum(residual(g) ** 2))(grid_mm)
-    sol = optx.least_squares(residual, _SOLVER(), grid_mm[jnp.argmin(costs)], max_steps=max_steps, throw=False)
-    depth = coarse_depth_m + 1e-3 * sol.value
+    offset_mm, converged, num_steps = polish_depth(lambda x: jnp.sum(residual(x) ** 2), grid_mm[jnp.argmin(costs)],
+                                                   ceiling=jnp.min(costs), max_steps=max_steps)
+    depth = coarse_depth_m + 1e-3 * offset_mm
     coef, res = _project(design(depth), y)
     amp = coef[1] * scale
     d_tone = jax.jvp(lambda d: design(d)[:, 1], (depth,), (jnp.ones_like(depth),))[1]
@@ -82,5 +82,4 @@ def refine_time_domain(r: Float[Array, " N"], frequencies_hz: Float[Array, " N"]
     fisher = cols.T @ cols / jnp.maximum(noise_var, 1e-30)
     cov = jnp.linalg.inv(fisher + 1e-300 * jnp.eye(3))
     sigma = jnp.where(cov[2, 2] > 0, jnp.sqrt(jnp.abs(cov[2, 2])), jnp.inf)
-    return FitResult(depth, coef[0] * scale, amp, sigma, sol.result == optx.RESULTS.successful,
-                     sol.stats["num_steps"], jnp.sum(res**2) * scale**2)
+    return FitResult(depth, coef[0] * scale, amp, sigma, converged, num_steps, jnp.sum(res**2) * scale**2)
