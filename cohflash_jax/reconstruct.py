@@ -26,7 +26,7 @@ from .calibration_file import Calibration
 from .capture import Capture, CaptureError
 from .constants import SPEED_OF_LIGHT_M_PER_S as C
 from .estimate.coarse import coarse_peak, hann_power, interpolate_peak
-from .estimate.iq import align_carrier_static, derotate, iq_from_frames, track_carrier_drift
+from .estimate.iq import carrier_axis, derotate, iq_from_frames, rotate_onto_axis, track_carrier_drift
 from .estimate.ml import UniformModel, crlb_frequency_only_m, grid_for, refine_ml_uniform
 from .estimate.nonuniform import depth_grid, periodogram_coarse, refine_time_domain
 from .hybrid import Hybrid
@@ -70,16 +70,31 @@ class TileConfig(eqx.Module):
     max_fit_chi2: float = eqx.field(static=True, default=DEFAULT_MAX_FIT_CHI2)
 
 
-@eqx.filter_jit
 def process_tile(cfg: TileConfig, frames, dark, data_status=None, gain=None, carrier_phase_rad=None):
     """Depth and companions for a tile of pixels: frames (4, N, P) → dict of (P,) arrays.
     `dark` (4, P): per-pixel offsets (DN); `gain` (4, P): per-pixel gains relative to the
     hybrid's global ones; `data_status` (P,) int8: codes found upstream (e.g. registration);
     `carrier_phase_rad` (N,): a known carrier drift common to all pixels, removed first.
 
-    The I/Q stage runs in the file's (frame, pixel) layout; only the carrier-aligned real
-    sequence is transposed to (pixel, frame) for the FFT along its contiguous last axis."""
-    n = frames.shape[1]
+    Three compiled programs, dispatched asynchronously: `iq_and_carrier_axis` in the file's
+    (frame, pixel) layout; the rotation onto the carrier axis; `invert_sequence`, which
+    transposes the real sequence to (pixel, frame) for the FFT along its contiguous last axis.
+    Fused into one program, XLA's CPU compiler recomputed the per-pixel cos/sin of the carrier
+    axis for every frame, and computed the rotated sequence straight into the transposed
+    layout, reading I/Q with a stride (measured: see `align_carrier_static`, and for 512 px ×
+    3000 frames 4.0 ms for the rotation, transpose and FFT fused against 1.7 ms apart)."""
+    i, q, axis, noise_var, flags = iq_and_carrier_axis(cfg, frames, dark, gain, carrier_phase_rad)
+    return invert_sequence(cfg, _rotate_onto_axis(i, q, *axis), noise_var, flags, data_status)
+
+
+_rotate_onto_axis = jax.jit(rotate_onto_axis)
+
+
+@eqx.filter_jit
+def iq_and_carrier_axis(cfg: TileConfig, frames, dark, gain=None, carrier_phase_rad=None):
+    """Data checks, I/Q and the carrier axis: frames (4, N, P) → I, Q (N, P) (drift removed
+    where asked), the axis (cos φ, sin φ), the noise variance and the data flags (dead,
+    saturated, finite), each (P,)."""
     real = jnp.float64 if cfg.dtype == "float64" else jnp.float32
     high, low = jnp.max(frames, axis=1), jnp.min(frames, axis=1)  # (4, P)
     dead = jnp.any(high == low, axis=0)
@@ -90,13 +105,20 @@ def process_tile(cfg: TileConfig, frames, dark, data_status=None, gain=None, car
     else:
         finite = jnp.ones(dead.shape, bool)
     i, q = iq_from_frames(frames.astype(real), cfg.iq_weights, cfg.iq_bias, dark, gain)  # (N, P) each
-    i, q = jax.lax.optimization_barrier((i, q))  # materialise once; later passes read I/Q, not frames
     if carrier_phase_rad is not None:
         i, q = derotate(i, q, jnp.asarray(carrier_phase_rad, i.dtype)[:, None])
     if cfg.tracking:  # remove a slow carrier drift first (turbulence)
         i, q = derotate(i, q, track_carrier_drift(i, q, cfg.track_window))
-    r, noise_var, _ = align_carrier_static(i, q)
-    noise_var = noise_var.astype(jnp.float64)
+    c, s, noise_var, _ = carrier_axis(i, q)
+    return i, q, (c, s), noise_var.astype(jnp.float64), (dead, saturated, finite)
+
+
+@eqx.filter_jit
+def invert_sequence(cfg: TileConfig, r, noise_var, flags, data_status=None):
+    """Depth, its σ, amplitude, SNR and status per pixel from the carrier-aligned sequence
+    r (N, P) and `iq_and_carrier_axis`'s noise variance and data flags."""
+    dead, saturated, finite = flags
+    n = r.shape[0]
     if cfg.uniform:
         depth, amplitude, sigma, coarse, converged, finite_fit, wandered, chi2 = _invert_uniform(cfg, r, noise_var)
     else:

@@ -29,9 +29,20 @@ def hann_power(spec: Complex[Array, "P K"], n: int) -> Float[Array, "P K"]:
     return jnp.concatenate([sq(first), sq(interior), sq(last)], axis=-1)
 
 
+def first_argmax(x: Float[Array, "P K"]) -> Int[Array, " P"]:
+    """`jnp.argmax` along the last axis (first index of the maximum) as two vectorised
+    reductions, a max and a min over indices: XLA's CPU argmax is a variadic reduce that does
+    not vectorise (measured on a Hann spectrum of 512 px × 1501 bins, fused with it: 2.9 ms
+    against 0.7 ms). A NaN row gives index 0."""
+    k = x.shape[-1]
+    top = jnp.max(x, axis=-1, keepdims=True)
+    first = jnp.min(jnp.where(x == top, jnp.arange(k, dtype=jnp.int32), k), axis=-1)
+    return jnp.where(first < k, first, 0)
+
+
 def coarse_peak(power: Float[Array, "P K"], min_bin: int = 1) -> Int[Array, " P"]:
     """Index of the strongest bin at or above `min_bin` (DC leakage lies below)."""
-    return jnp.argmax(power[..., min_bin:], axis=-1) + min_bin
+    return first_argmax(power[..., min_bin:]) + min_bin
 
 
 def interpolate_peak(power: Float[Array, "P K"], peak: Int[Array, " P"]) -> Float[Array, " P"]:

@@ -35,15 +35,14 @@ def _rotate(i, q, phase):
     return i * c + q * s, -i * s + q * c
 
 
-def align_carrier_static(i: Float[Array, "N P"], q: Float[Array, "N P"]):
-    """Rotate I/Q by the principal axis of each pixel's (mean-removed) I/Q cloud.
+def carrier_axis(i: Float[Array, "N P"], q: Float[Array, "N P"]):
+    """Principal axis of each pixel's (mean-removed) I/Q cloud, from its second moments.
 
     Z = e^{iφ}·(real sequence) + noise lies on a line at angle φ; ½·arg Σ(Z − Z̄)² finds it
     up to a sign, taken from the mean term A·w_0 (reliable once the hybrid is calibrated; the
-    fit's signed amplitude absorbs a wrong sign). Returns (r, noise_var,
-    phase): r carries the signal; noise_var is the variance of the orthogonal component,
-    which holds only noise (and hybrid-error leakage), computed from the same second
-    moments without another pass over the data."""
+    fit's signed amplitude absorbs a wrong sign). Returns (cos φ, sin φ, noise_var, φ), each
+    (P,): noise_var is the variance of the orthogonal component, which holds only noise (and
+    hybrid-error leakage), computed from the same moments without another pass."""
     n = i.shape[0]
     mi, mq = jnp.mean(i, axis=0), jnp.mean(q, axis=0)
     sii = jnp.sum(i * i, axis=0) / n - mi * mi
@@ -54,8 +53,24 @@ def align_carrier_static(i: Float[Array, "N P"], q: Float[Array, "N P"]):
     phase = jnp.where(mi * jnp.cos(phase) + mq * jnp.sin(phase) < 0, phase + jnp.pi, phase)
     c, s = jnp.cos(phase), jnp.sin(phase)
     noise_var = jnp.maximum(s * s * sii + c * c * sqq - 2 * s * c * siq, 0.0)
-    r = i * c + q * s
-    return r, noise_var, phase
+    return c, s, noise_var, phase
+
+
+def rotate_onto_axis(i: Float[Array, "N P"], q: Float[Array, "N P"], cos_phase: Float[Array, " P"],
+                     sin_phase: Float[Array, " P"]) -> Float[Array, "N P"]:
+    """The real sequence r = I cos φ + Q sin φ along each pixel's carrier axis."""
+    return i * cos_phase + q * sin_phase
+
+
+def align_carrier_static(i: Float[Array, "N P"], q: Float[Array, "N P"]):
+    """`carrier_axis` then `rotate_onto_axis` → (r, noise_var, phase).
+
+    Within one XLA CPU program the per-pixel cos φ, sin φ (and the arctan2 before them) are
+    fused into the rotation and recomputed for every frame (measured, 512 px × 3000 frames:
+    9 ms against 2 ms); the reconstruction therefore runs the two halves as separate
+    programs (`reconstruct.process_tile`). Fine for small arrays."""
+    c, s, noise_var, phase = carrier_axis(i, q)
+    return rotate_onto_axis(i, q, c, s), noise_var, phase
 
 
 def _moving_average(x: Array, window: int) -> Array:

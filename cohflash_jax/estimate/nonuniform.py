@@ -16,6 +16,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
+from .coarse import first_argmax
 from .ml import FitResult, polish_depth
 
 
@@ -37,7 +38,7 @@ def periodogram_coarse(r: Float[Array, "N P"], frequencies_hz: Float[Array, " N"
     centred = (r - jnp.mean(r, axis=0)).astype(jnp.float32)
     power = jnp.abs(centred.T.astype(jnp.complex64) @ basis) ** 2  # (P, G)
     g = power.shape[-1]
-    k = jnp.argmax(power, axis=-1)
+    k = first_argmax(power)
     take = lambda idx: jnp.take_along_axis(power, jnp.clip(idx, 0, g - 1)[:, None], axis=-1)[:, 0]
     a, b, c = take(k - 1), take(k), take(k + 1)
     den = a - 2 * b + c
