@@ -31,6 +31,7 @@ from .estimate.ml import UniformModel, crlb_frequency_only_m, grid_for, refine_m
 from .estimate.nonuniform import depth_grid, periodogram_coarse, refine_time_domain
 from .hybrid import Hybrid
 from .modulator import MZM
+from .runtime import retain_freed_memory
 
 METHODS = ("dft", "interp", "ml")
 STATUS = {0: "ok", 1: "low_snr", 2: "not_converged", 3: "fit_failed", 4: "bad_data (NaN/inf)",
@@ -297,6 +298,7 @@ def reconstruct_array(frames, frequencies_hz, options: ReconstructOptions | None
     dispatched asynchronously (as `reconstruct_capture` does within each streamed tile).
     `carrier_phase_rad` (N,): a known common carrier drift to remove (calibration)."""
     options = options or ReconstructOptions(progress=False)
+    retain_freed_memory()
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[0] != 4:
         raise ValueError(f"frames must have shape (4, N, H, W), got {frames.shape}")
@@ -386,6 +388,7 @@ def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibrati
     """Reconstruct an open capture tile by tile (bounded memory) → (outputs, metadata).
 
     `registration_maps`: three (map_x, map_y) arrays (H, W) placing CCDs 2–4 on CCD 1's grid."""
+    retain_freed_memory()
     n, h, w = capture.shape
     attrs = capture.attrs
     hybrid = Hybrid(tuple(capture.hybrid_phases_rad))
