@@ -117,8 +117,9 @@ def _summary(outputs, meta) -> str:
     valid = outputs["valid"].astype(bool)
     counts = np.bincount(outputs["fit_status"].astype(int).ravel(), minlength=len(STATUS))
     flagged = ", ".join(f"{STATUS[k]} {c}" for k, c in enumerate(counts) if k and c)
-    lines = [f"method {meta['method']} ({meta['carrier_alignment']} carrier alignment); ambiguity interval "
-             f"[0, {meta['ambiguity_m']:.3f}) m; DFT bin {meta['bin_depth_m'] * 1e3:.2f} mm",
+    start, end = meta.get("depth_window_m", (0.0, meta["ambiguity_m"]))
+    lines = [f"method {meta['method']} ({meta['carrier_alignment']} carrier alignment); unambiguous depths "
+             f"[{start:.3f}, {end:.3f}) m; DFT bin {meta['bin_depth_m'] * 1e3:.2f} mm",
              f"valid pixels {valid.sum()} / {valid.size} ({valid.mean():.1%})" + (f"; flagged: {flagged}" if flagged else "")]
     if valid.any():
         d = outputs["depth_m"][valid]

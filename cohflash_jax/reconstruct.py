@@ -68,6 +68,9 @@ class TileConfig(eqx.Module):
     frequencies_hz: jax.Array | None = None  # non-uniform path only
     depth_grid_m: jax.Array | None = None  # non-uniform path only: coarse periodogram depths
     min_bin: int = eqx.field(static=True, default=1)  # coarse search starts here (--min-depth-m)
+    # the unambiguous depth window (m) and the half-period of total delay it maps to (`delay_window`)
+    depth_window_m: tuple[float, float] = eqx.field(static=True, default=(0.0, math.inf))
+    fold_index: int = eqx.field(static=True, default=0)
     max_fit_chi2: float = eqx.field(static=True, default=DEFAULT_MAX_FIT_CHI2)
 
 
@@ -129,7 +132,7 @@ def invert_sequence(cfg: TileConfig, r, noise_var, flags, data_status=None):
     # coarse depth instead, so depth maps of flagged pixels stay within the interval
     depth = jnp.where(wandered, coarse, depth)
     snr = n * (amplitude * cfg.model.weights[cfg.dominant_order]) ** 2 / jnp.maximum(noise_var, 1e-30)
-    out_of_range = (depth < 0) | (depth >= cfg.ambiguity_m) | wandered
+    out_of_range = (depth < max(0.0, cfg.depth_window_m[0])) | (depth >= cfg.depth_window_m[1]) | wandered
     status = jnp.full(depth.shape, OK, jnp.int8)
     # later conditions win: the status names the most basic reason a pixel is invalid
     for cond, code in ((out_of_range, OUT_OF_RANGE), (chi2 > cfg.max_fit_chi2, POOR_FIT), (~converged, NOT_CONVERGED),
@@ -152,7 +155,8 @@ def _invert_uniform(cfg: TileConfig, r, noise_var):
     peak = coarse_peak(power, cfg.min_bin)
     frac_bin = peak.astype(jnp.float64) if cfg.method == "dft" else interpolate_peak(power, peak).astype(jnp.float64)
     m = cfg.model
-    coarse = frac_bin / n / (cfg.dominant_order * m.step_hz) * C / 2 - C * m.system_delay_s / 2
+    coarse = unfold_delay(frac_bin / n, 1 / (cfg.dominant_order * m.step_hz), cfg.fold_index,
+                          m.system_delay_s) * C / 2
     tone_weight = m.weights[cfg.dominant_order]
     if cfg.method == "ml":
         k_count = spec.shape[-1]
@@ -249,6 +253,28 @@ def modulator_from_attrs(attrs: dict) -> MZM:
                max_order=int(attrs.get("sideband_max_order", default.max_order)))
 
 
+def delay_window(period_s: float, system_delay_s: float) -> tuple[int, tuple[float, float]]:
+    """Where depth is unambiguous, given the beat tone's delay period P = 1/(order·Δf) and the
+    system delay τ_sys. A real tone's DFT shows its total delay τ folded into [0, P/2]: τ and
+    −τ modulo P look alike. Depths are therefore unambiguous over one half-period of total
+    delay, [jP/2, (j+1)P/2); j is the half-period boundary nearest τ_sys, so the window
+    [(jP/2 − τ_sys)·c/2, ((j+1)P/2 − τ_sys)·c/2) starts within a quarter period of depth 0.
+    τ_sys = 0 gives [0, c/(4·order·Δf)); τ_sys = 6.7 ns (1 m of extra one-way path) gives
+    [−1 m, c/(4·order·Δf) − 1 m), and a target beyond the window's end folds back onto it.
+    Pixels outside [max(0, start), end) are flagged out of range. Returns (j, (start_m, end_m))."""
+    half = period_s / 2
+    fold = int(math.floor(system_delay_s / half + 0.5))
+    return fold, ((fold * half - system_delay_s) * C / 2, ((fold + 1) * half - system_delay_s) * C / 2)
+
+
+def unfold_delay(folded_cycles, period_s: float, fold_index: int, system_delay_s: float):
+    """Depth delay (s, two-way, τ_sys removed) from the tone's frequency in cycles per frame
+    (folded into [0, ½]), placed in the half-period `fold_index` of `delay_window`."""
+    k, odd = divmod(fold_index, 2)
+    folded_s = folded_cycles * period_s
+    return k * period_s + ((period_s - folded_s) if odd else folded_s) - system_delay_s
+
+
 def build_config(frequencies_hz, hybrid: Hybrid, modulator: MZM, system_delay_s: float,
                  saturation_dn, options: ReconstructOptions) -> TileConfig:
     f = np.asarray(frequencies_hz, np.float64)
@@ -274,18 +300,24 @@ def build_config(frequencies_hz, hybrid: Hybrid, modulator: MZM, system_delay_s:
     iq_w, iq_b = hybrid.iq_matrix_dn(1.0)
     model = UniformModel(float(f[0]), step, jnp.asarray(weights), float(system_delay_s), num_frames=n)
     # a non-uniform schedule is unambiguous up to its finest step (coarser steps add sidelobes)
-    ambiguity = C / (4 * (step if uniform else float(np.min(np.diff(f)))) * dominant)
-    extra = {"max_fit_chi2": float(options.max_fit_chi2)}
+    period = 1 / ((step if uniform else float(np.min(np.diff(f)))) * dominant)
+    ambiguity = C * period / 4
+    fold, window = delay_window(period, float(system_delay_s))
+    extra = {"max_fit_chi2": float(options.max_fit_chi2), "depth_window_m": window, "fold_index": fold}
     if options.min_depth_m > 0:
         if not uniform:
             raise ValueError("min_depth_m applies to uniform sweeps only")
-        first = (2 * options.min_depth_m / C + system_delay_s) * n * step * dominant
+        if fold % 2:
+            raise ValueError(f"min_depth_m: with a system delay of {system_delay_s:.4g} s depth grows towards "
+                             "lower DFT bins (an odd half-period of delay), where a lower bin limit cannot apply")
+        first = (2 * options.min_depth_m / C + system_delay_s - fold // 2 * period) / period * n
         if first >= n // 2:
             raise ValueError(f"min_depth_m = {options.min_depth_m} m leaves no depth below the ambiguity limit")
         extra["min_bin"] = max(1, int(math.floor(first)))
     if not uniform:
-        extra = {"uniform": False, "frequencies_hz": jnp.asarray(f),
-                 "depth_grid_m": jnp.asarray(depth_grid(f, ambiguity))}
+        extra.update({"uniform": False, "frequencies_hz": jnp.asarray(f),
+                      "depth_grid_m": jnp.asarray(depth_grid(f, window))})
+        extra.pop("min_bin", None)
     return TileConfig(iq_w, iq_b, model, saturation_dn, options.method, options.tracking,
                       options.track_window_frames, options.window_bins, half, points, candidates, options.max_steps,
                       dominant, ambiguity, bin_depth, 10 ** (options.snr_threshold_db / 10), options.dtype, **extra)
@@ -455,6 +487,7 @@ def reconstruct_capture(capture: Capture, options: ReconstructOptions, calibrati
             pending = (results, r0, r1)
         _collect(pending, outputs, h, w, rows, bar)
     meta = {"method": options.method, "ambiguity_m": cfg.ambiguity_m, "bin_depth_m": cfg.bin_depth_m,
+            "depth_window_m": [max(0.0, cfg.depth_window_m[0]), cfg.depth_window_m[1]],
             "carrier_alignment": "tracked" if options.tracking else "static",
             "snr_threshold_db": options.snr_threshold_db, "dtype": options.dtype,
             "seconds": time.perf_counter() - t0, "window_bins": options.window_bins,

@@ -194,10 +194,11 @@ def test_reconstruct_cli_end_to_end(tmp_path, capsys):
                str(tmp_path / "d.ply"), "--tiff", str(tmp_path / "d.tiff"), "--quiet", "--tile-rows", "8"])
     assert rc == 0
     text = capsys.readouterr().out
-    assert "ambiguity interval [0, 38.045) m" in text
+    assert "unambiguous depths [0.000, 38.045) m" in text
     with h5py.File(out) as f:
         assert f.attrs["format"] == "cohflash-depth" and f.attrs["method"] == "ml"
         assert abs(float(f.attrs["ambiguity_m"]) - C / (4 * 1.97e6)) < 1e-9
+        np.testing.assert_allclose(f.attrs["depth_window_m"], [0.0, C / (4 * 1.97e6)], rtol=1e-12)
         for k in ("depth_m", "amplitude", "valid", "sigma_m", "snr", "fit_status"):
             assert f[k].shape == (8, 8)
         assert "cohflash_version" in f.attrs["provenance"]
@@ -327,3 +328,31 @@ def test_polish_converges_in_few_newton_steps_and_never_reports_a_maximum_as_con
     assert abs(float(value)) < 1e-6 and not bool(ok)
     value, ok, _ = polish_depth(jnp.cos, jnp.asarray(2.5), ceiling=np.cos(2.5), max_steps=16)
     assert abs(float(value) - np.pi) < 1e-6 and bool(ok)
+
+
+@pytest.mark.parametrize("system_delay_half_periods", [0.3, 2.8])
+def test_system_delay_moves_the_unambiguous_window_and_depths_stay_exact(system_delay_half_periods, paper_instrument):
+    """τ_sys = 0.3 P/2 puts depth 0 in the first half-period of total delay (window
+    [−0.3, 0.7)·ambiguity); τ_sys = 2.8 P/2 in the fourth, where the folded tone runs
+    backwards (window [0.2, 1.2)·ambiguity). Noiseless, with sidebands: ML exact to 1 µm
+    across the window, and the window reported."""
+    from cohflash_jax.reconstruct import build_config, delay_window
+    from cohflash_jax.hybrid import Hybrid
+    from cohflash_jax.modulator import MZM
+
+    sweep = paper_instrument.sweep
+    period_s = 1 / sweep.step_hz
+    amb = sweep.ambiguity_m
+    delay = system_delay_half_periods * period_s / 2
+    fold, (start, end) = delay_window(period_s, delay)
+    assert start == pytest.approx((round(system_delay_half_periods) - system_delay_half_periods) * amb, abs=1e-6)
+    assert end - start == pytest.approx(amb, rel=1e-12)
+    lo, hi = max(0.0, start), end
+    depths = np.random.default_rng(5).uniform(lo + 0.2, hi - 0.2, 64)
+    inst = cf.Instrument.paper(N_FRAMES, system_delay_s=delay)
+    frames = cf.simulate(depth_scene(depths, effects=("sidebands",)), inst, 8, 8, jax.random.key(0))
+    out = _reconstruct(frames, inst, system_delay_s=delay)
+    err = out["depth_m"].ravel() - depths
+    assert np.all(out["valid"]) and np.max(np.abs(err)) < 1e-6
+    cfg = build_config(sweep.frequencies_hz, Hybrid(), MZM(), delay, None, OPTS["ml"])
+    assert cfg.depth_window_m == (start, end) and cfg.fold_index == fold

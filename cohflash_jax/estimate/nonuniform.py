@@ -20,11 +20,11 @@ from .coarse import first_argmax
 from .ml import FitResult, polish_depth
 
 
-def depth_grid(frequencies_hz: np.ndarray, max_depth_m: float, points_per_envelope: int = 4) -> np.ndarray:
-    """Depths (m) from 0 to `max_depth_m` spaced c/(2B)/points_per_envelope."""
+def depth_grid(frequencies_hz: np.ndarray, depth_window_m: tuple[float, float], points_per_envelope: int = 4) -> np.ndarray:
+    """Depths (m) over the unambiguous window [max(0, start), end), spaced c/(2B)/points_per_envelope."""
     f = np.asarray(frequencies_hz, np.float64)
     envelope = C / (2 * (f[-1] - f[0]))
-    return np.arange(0.0, max_depth_m, envelope / points_per_envelope)
+    return np.arange(max(0.0, depth_window_m[0]), depth_window_m[1], envelope / points_per_envelope)
 
 
 def periodogram_coarse(r: Float[Array, "N P"], frequencies_hz: Float[Array, " N"], depths_m: Float[Array, " G"],
