@@ -167,7 +167,7 @@ def _invert_uniform(cfg: TileConfig, r, noise_var):
                                 grid_points=cfg.grid_points, max_steps=cfg.max_steps,
                                 candidates=cfg.grid_candidates)
         depth, amplitude, sigma = fit.depth_m, jnp.abs(fit.amplitude), fit.sigma_depth_m
-        finite_fit = jnp.isfinite(depth) & jnp.isfinite(sigma) & jnp.isfinite(amplitude)
+        finite_fit = jnp.isfinite(depth) & jnp.isfinite(sigma) & jnp.isfinite(amplitude) & fit.well_posed
         converged = fit.converged
         wandered = jnp.abs(depth - coarse) > 2 * cfg.bin_depth_m
         # reduced χ² of the window fit: each unitary bin holds noise of variance σ²/2 per
@@ -207,7 +207,7 @@ def _invert_nonuniform(cfg: TileConfig, r, noise_var):
             rr, f, m.weights, d, v, system_delay_s=m.system_delay_s, grid_half_width_m=cfg.grid_half_width_m,
             grid_points=cfg.grid_points, max_steps=cfg.max_steps))(r.T, coarse, noise_var)
         depth, amplitude, sigma = fit.depth_m, jnp.abs(fit.amplitude), fit.sigma_depth_m
-        finite_fit = jnp.isfinite(depth) & jnp.isfinite(sigma) & jnp.isfinite(amplitude)
+        finite_fit = jnp.isfinite(depth) & jnp.isfinite(sigma) & jnp.isfinite(amplitude) & fit.well_posed
         return depth, amplitude, sigma, coarse, fit.converged, finite_fit, jnp.abs(depth - coarse) > 2 * cfg.bin_depth_m
     amplitude = peak_amp / (2 * tone_weight)
     # frequency-only bound for an arbitrary schedule: the tone's phase is a nuisance, so only

@@ -171,6 +171,18 @@ class FitResult(eqx.Module):
     converged: Array
     num_steps: Array
     cost: Float[Array, "..."]
+    well_posed: Array  # False where the tone cancels against the offset (`tone_cancels_offset`)
+
+
+def tone_cancels_offset(design, coef, y, factor: float = 4.0):
+    """True where the fitted tone carries more than `factor` × the data's energy: the tone
+    column has become nearly collinear with the offset column (depth → 0, where the tone
+    flattens into a constant) and the two cancel with huge coefficients. Seen at 35 frames on
+    a noise peak near DC: amplitude 3·10⁵ against ~90 for real echoes, SNR 86 dB, σ 0.2 mm —
+    a wild fit that every other check passed. A real echo's tone carries at most the data's
+    energy plus noise."""
+    tone = coef[1] * design[:, 1]
+    return jnp.sum(tone**2) > factor * jnp.sum(y**2)
 
 
 def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_depth_m, noise_var,
@@ -254,7 +266,8 @@ def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_dep
     inv = jnp.array([[frr[1, 1], -frr[0, 1]], [-frr[1, 0], frr[0, 0]]]) / det
     schur = fisher[0, 0] - fisher[0, 1:] @ inv @ fisher[1:, 0]
     sigma = jnp.where(schur > 0, 1 / jnp.sqrt(jnp.maximum(schur, 1e-300)), jnp.inf)
-    return FitResult(depth, coef[0] * scale, coef[1] * scale, sigma, ok & jnp.isfinite(cost), num_steps, cost * scale**2)
+    return FitResult(depth, coef[0] * scale, coef[1] * scale, sigma, ok & jnp.isfinite(cost), num_steps, cost * scale**2,
+                     ~tone_cancels_offset(design, coef, y))
 
 
 def refine_ml_uniform(model: UniformModel, windows, k0, coarse_depth_m, noise_var, *,
