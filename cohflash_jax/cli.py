@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from cohflash_jax.design import PARAMETERS
+from cohflash_jax.runtime import enable_compilation_cache
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -513,10 +514,12 @@ def main(argv=None) -> int:
         from cohflash_jax.reconstruct import DEFAULT_SNR_THRESHOLD_DB
 
         args.snr_threshold_db = DEFAULT_SNR_THRESHOLD_DB
+    enable_compilation_cache()
     try:
         return args.func(args)
-    except BrokenPipeError:
-        raise
+    except BrokenPipeError:  # e.g. `cohflash scenes | head` (before OSError, of which it is one)
+        sys.stderr.close()
+        return 0
     except (ValueError, FileNotFoundError, NotImplementedError, OSError) as exc:
         print(f"cohflash {args.command}: error: {exc}", file=sys.stderr)
         return 2
@@ -527,9 +530,6 @@ def main(argv=None) -> int:
         else:
             print("interrupted; no partial output was kept", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # e.g. `cohflash scenes | head`
-        sys.stderr.close()
-        return 0
 
 
 if __name__ == "__main__":

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import ctypes
+import os
 import sys
+from pathlib import Path
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc mallopt parameters (malloc.h)
 _applied = False
@@ -29,3 +31,28 @@ def retain_freed_memory(threshold_bytes: int = 1 << 30) -> bool:
     except (OSError, AttributeError):  # not glibc (e.g. musl): leave the allocator alone
         _applied = False
     return _applied
+
+
+def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | None:
+    """Keep XLA's compiled programs on disk between runs (the CLI turns this on).
+
+    A `cohflash reconstruct` run compiles its sub-tile programs afresh in every process: on a
+    full 320×256×3000 capture the first `ml` run took 12.1 s, and 5.2 s once the cache held its
+    programs (2 cores; the cache is ~0.5 MB). Where: `path`, else $COHFLASH_JAX_CACHE, else
+    $XDG_CACHE_HOME/cohflash/jax (~/.cache/cohflash/jax); COHFLASH_JAX_CACHE=off disables it.
+    A directory that cannot be created leaves the cache off. Returns the directory used."""
+    import jax
+
+    setting = path if path is not None else os.environ.get("COHFLASH_JAX_CACHE")
+    if setting is not None and str(setting).lower() in ("off", "0", "none", ""):
+        return None
+    if setting is None:
+        setting = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "cohflash" / "jax"
+    folder = Path(setting).expanduser()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    return folder

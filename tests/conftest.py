@@ -1,10 +1,15 @@
 """Shared, session-scoped fixtures: small shapes so JAX compiles each once."""
 
+import os
+
 import jax
 import numpy as np
 import pytest
 
 import cohflash_jax as cf
+
+# the CLI keeps compiled programs in ~/.cache/cohflash/jax; tests stay hermetic
+os.environ.setdefault("COHFLASH_JAX_CACHE", "off")
 
 N_FRAMES = 3000  # the paper's sweep: keeps Δf, bin width and ripple as in the paper
 PIXELS = (8, 8)

@@ -408,3 +408,21 @@ def test_a_fit_whose_tone_cancels_the_offset_is_flagged_not_valid():
     out = reconstruct_array(frames, sweep.frequencies_hz, OPTS["ml"])
     assert out["fit_status"][0, 0] == FIT_FAILED and not out["valid"][0, 0]
     assert np.isfinite(out["depth_m"][0, 0])
+
+
+def test_compilation_cache_folder_is_created_set_and_can_be_turned_off(tmp_path, monkeypatch):
+    from cohflash_jax.runtime import enable_compilation_cache
+
+    monkeypatch.setenv("COHFLASH_JAX_CACHE", "off")
+    assert enable_compilation_cache() is None
+    monkeypatch.setenv("COHFLASH_JAX_CACHE", str(tmp_path / "from-env"))
+    previous = jax.config.jax_compilation_cache_dir
+    try:
+        assert enable_compilation_cache() == tmp_path / "from-env" and (tmp_path / "from-env").is_dir()
+        folder = enable_compilation_cache(tmp_path / "a" / "jax")
+        assert folder.is_dir() and jax.config.jax_compilation_cache_dir == str(folder)
+        blocker = tmp_path / "file"
+        blocker.write_text("")
+        assert enable_compilation_cache(blocker / "jax") is None  # cannot be created: stays off
+    finally:
+        jax.config.update("jax_compilation_cache_dir", previous)
