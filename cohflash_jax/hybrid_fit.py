@@ -411,7 +411,11 @@ def initial_common_drift(i, q, window_frames: int = 101) -> tuple[np.ndarray, st
 
 
 def _select_pixels(capture: Capture, max_pixels: int, snr_map: np.ndarray, status_map: np.ndarray):
-    ok = (status_map == 0) & np.isfinite(snr_map)
+    # dc_edge pixels are usable: through an uncalibrated hybrid the untracked turbulent carrier
+    # makes the survey's mean term wander near DC, which the calibration's drift model removes
+    from .reconstruct import DC_EDGE
+
+    ok = ((status_map == 0) | (status_map == DC_EDGE)) & np.isfinite(snr_map)
     if int(ok.sum()) < MIN_PIXELS:
         counts = {int(c): int((status_map == c).sum()) for c in np.unique(status_map)}
         raise CaptureError(f"{capture.path}: only {int(ok.sum())} pixels are usable for calibration (need ≥ "

@@ -36,9 +36,10 @@ from .runtime import retain_freed_memory
 METHODS = ("dft", "interp", "ml")
 STATUS = {0: "ok", 1: "low_snr", 2: "not_converged", 3: "fit_failed", 4: "bad_data (NaN/inf)",
           5: "saturated", 6: "dead (constant)", 7: "out_of_range", 8: "outside_registration",
-          9: "poor_fit (reduced χ² above max_fit_chi2)"}
+          9: "poor_fit (reduced χ² above max_fit_chi2)", 10: "dc_edge (power rises towards DC: slow drift)"}
 OK, LOW_SNR, NOT_CONVERGED, FIT_FAILED, BAD_DATA, SATURATED, DEAD, OUT_OF_RANGE = range(8)
 POOR_FIT = 9
+DC_EDGE = 10
 DEFAULT_SNR_THRESHOLD_DB = 14.0
 # Reduced χ² of the ML window fit above which the model does not describe the pixel (measured:
 # ≤ 2.9 at 30 dB peak-bin SNR with sidebands and roll-off; ~18 when carrier tracking failed
@@ -124,18 +125,20 @@ def invert_sequence(cfg: TileConfig, r, noise_var, flags, data_status=None):
     dead, saturated, finite = flags
     n = r.shape[0]
     if cfg.uniform:
-        depth, amplitude, sigma, coarse, converged, finite_fit, wandered, chi2 = _invert_uniform(cfg, r, noise_var)
+        depth, amplitude, sigma, coarse, converged, finite_fit, wandered, chi2, dc_edge = _invert_uniform(cfg, r, noise_var)
     else:
         depth, amplitude, sigma, coarse, converged, finite_fit, wandered = _invert_nonuniform(cfg, r, noise_var)
         chi2 = jnp.full(depth.shape, -1.0)
-    # a fit that ran off (seen at ~7 dB: 1e14 m) is flagged out_of_range and reports the
-    # coarse depth instead, so depth maps of flagged pixels stay within the interval
-    depth = jnp.where(wandered, coarse, depth)
+        dc_edge = jnp.zeros_like(wandered)
+    # a fit that ran off (seen at ~7 dB: 1e14 m) is flagged out_of_range, a peak on the DC edge
+    # dc_edge; both report the coarse depth, so depth maps of flagged pixels stay in range
+    depth = jnp.where(wandered | dc_edge, coarse, depth)
     snr = n * (amplitude * cfg.model.weights[cfg.dominant_order]) ** 2 / jnp.maximum(noise_var, 1e-30)
     out_of_range = (depth < max(0.0, cfg.depth_window_m[0])) | (depth >= cfg.depth_window_m[1]) | wandered
     status = jnp.full(depth.shape, OK, jnp.int8)
     # later conditions win: the status names the most basic reason a pixel is invalid
-    for cond, code in ((out_of_range, OUT_OF_RANGE), (chi2 > cfg.max_fit_chi2, POOR_FIT), (~converged, NOT_CONVERGED),
+    for cond, code in ((out_of_range, OUT_OF_RANGE), (chi2 > cfg.max_fit_chi2, POOR_FIT), (dc_edge, DC_EDGE),
+                       (~converged, NOT_CONVERGED),
                        (snr < cfg.snr_threshold, LOW_SNR),
                        (~finite_fit, FIT_FAILED), (dead, DEAD), (saturated, SATURATED), (~finite, BAD_DATA)):
         status = jnp.where(cond, jnp.int8(code), status)
@@ -189,7 +192,14 @@ def _invert_uniform(cfg: TileConfig, r, noise_var):
         converged = jnp.ones_like(finite_fit)
         wandered = jnp.zeros_like(finite_fit)
         chi2 = jnp.full(depth.shape, -1.0)  # not computed
-    return depth, amplitude, sigma, coarse, converged, finite_fit, wandered, chi2
+    # the DC edge: a peak on the first searched bin with more power just below it is the tail
+    # of a spectrum rising towards DC — slow drift looks exactly so (measured at 35 frames: a
+    # quadratic drift and no echo gave 16 of 64 pixels "valid" at one bin, χ² < 5, all with
+    # this signature; so does an untracked turbulent carrier, whose mean term wanders); such a
+    # pixel is flagged dc_edge and reports the coarse depth
+    below = jnp.take_along_axis(power, jnp.full((power.shape[0], 1), cfg.min_bin - 1), axis=-1)[:, 0]
+    dc_edge = (peak == cfg.min_bin) & (below > jnp.take_along_axis(power, peak[:, None], axis=-1)[:, 0])
+    return depth, amplitude, sigma, coarse, converged, finite_fit, wandered, chi2, dc_edge
 
 
 def _invert_nonuniform(cfg: TileConfig, r, noise_var):

@@ -426,3 +426,22 @@ def test_compilation_cache_folder_is_created_set_and_can_be_turned_off(tmp_path,
         assert enable_compilation_cache(blocker / "jax") is None  # cannot be created: stays off
     finally:
         jax.config.update("jax_compilation_cache_dir", previous)
+
+
+def test_slow_drift_without_an_echo_is_not_reported_as_a_target():
+    """A quadratic drift on one CCD and no echo, 35 frames (0.17–6 GHz comb): the spectrum
+    rises towards DC, the coarse peak sits on the first searched bin, and before the DC-edge
+    check 16 of 64 pixels came out valid at one bin (≈ 25 mm) with χ² < 5. None may."""
+    n = 35
+    sweep = cf.FrequencySweep.uniform(6e9 / n, 6e9 / n, n)
+    rng = np.random.default_rng(0)
+    m = np.arange(n)[:, None, None]
+    strength = rng.uniform(5, 200, (8, 8))
+    frames = 400 + rng.normal(0, 2.0, (4, n, 8, 8))
+    frames[0] += strength * (4 * ((m - n / 2) / n) ** 2 + 0.3 * m / n)
+    out = reconstruct_array(frames.astype(np.float32), sweep.frequencies_hz, OPTS["ml"])
+    assert not out["valid"].any()
+    from cohflash_jax.reconstruct import DC_EDGE
+
+    assert np.sum(out["fit_status"] == DC_EDGE) >= 16  # the ones that passed every other check
+    assert np.all((out["depth_m"] >= 0) & (out["depth_m"] < sweep.ambiguity_m))
