@@ -197,8 +197,7 @@ def _invert_uniform(cfg: TileConfig, r, noise_var):
     # quadratic drift and no echo gave 16 of 64 pixels "valid" at one bin, χ² < 5, all with
     # this signature; so does an untracked turbulent carrier, whose mean term wanders); such a
     # pixel is flagged dc_edge and reports the coarse depth
-    below = jnp.take_along_axis(power, jnp.full((power.shape[0], 1), cfg.min_bin - 1), axis=-1)[:, 0]
-    dc_edge = (peak == cfg.min_bin) & (below > jnp.take_along_axis(power, peak[:, None], axis=-1)[:, 0])
+    dc_edge = (peak == cfg.min_bin) & (power[:, cfg.min_bin - 1] > power[:, cfg.min_bin])
     return depth, amplitude, sigma, coarse, converged, finite_fit, wandered, chi2, dc_edge
 
 

@@ -229,7 +229,7 @@ def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_dep
     # step tolerance from the closed-form phase-locked bound at the window's peak amplitude
     # (a tone a·cos has unitary DFT peak a·√N/2 on a bin)
     tone_amplitude = 2 * scale / math.sqrt(n)
-    sigma_pred_mm = 1e3 * C / 2 * jnp.sqrt(noise_var / (0.5 * tone_amplitude**2 * model.sum_angular_frequency_sq()))
+    sigma_pred_mm = 1e3 * phase_locked_sigma_m(model.sum_angular_frequency_sq(), tone_amplitude, noise_var)
     tolerance_mm = jnp.maximum(STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA * sigma_pred_mm)
 
     def polish(start, ceiling):
@@ -296,8 +296,12 @@ def crlb_phase_locked_m(frequencies_hz, tone_amplitude, noise_sigma) -> float:
     tone's phase is locked to τ (uses all f_m): σ_τ² ≈ σ²/(a²/2 · Σ(2π f_m)²) — valid
     when amplitude and offset decouple from τ (many cycles over the sweep)."""
     f = np.asarray(frequencies_hz, np.float64)
-    info = 0.5 * tone_amplitude**2 * np.sum((2 * np.pi * f) ** 2) / noise_sigma**2
-    return float(C / 2 / np.sqrt(info))
+    return float(phase_locked_sigma_m(np.sum((2 * np.pi * f) ** 2), tone_amplitude, noise_sigma**2))
+
+
+def phase_locked_sigma_m(sum_angular_frequency_sq, tone_amplitude, noise_var):
+    """`crlb_phase_locked_m` from Σ(2π f_m)² (rad²/s²) and the noise variance (NumPy or JAX)."""
+    return C / 2 / (0.5 * tone_amplitude**2 * sum_angular_frequency_sq / noise_var) ** 0.5
 
 
 def crlb_frequency_only_m(num_frames: int, step_hz: float, tone_amplitude, noise_sigma, order: int = 1):
