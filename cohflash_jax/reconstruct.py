@@ -27,7 +27,7 @@ from .capture import Capture, CaptureError
 from .constants import SPEED_OF_LIGHT_M_PER_S as C
 from .estimate.coarse import coarse_peak, hann_power, interpolate_peak
 from .estimate.iq import carrier_axis, derotate, iq_from_frames, rotate_onto_axis, track_carrier_drift
-from .estimate.ml import UniformModel, crlb_frequency_only_m, grid_for, refine_ml_uniform
+from .estimate.ml import UniformModel, crlb_frequency_only_m, grid_for, grid_orders, refine_ml_uniform
 from .estimate.nonuniform import depth_grid, periodogram_coarse, refine_time_domain
 from .hybrid import Hybrid
 from .modulator import MZM
@@ -73,6 +73,7 @@ class TileConfig(eqx.Module):
     depth_window_m: tuple[float, float] = eqx.field(static=True, default=(0.0, math.inf))
     fold_index: int = eqx.field(static=True, default=0)
     max_fit_chi2: float = eqx.field(static=True, default=DEFAULT_MAX_FIT_CHI2)
+    grid_max_order: int | None = eqx.field(static=True, default=None)  # ml basin grid (`grid_orders`)
 
 
 def process_tile(cfg: TileConfig, frames, dark, data_status=None, gain=None, carrier_phase_rad=None):
@@ -168,7 +169,7 @@ def _invert_uniform(cfg: TileConfig, r, noise_var):
         windows = jnp.take_along_axis(spec, k0[:, None] + jnp.arange(w), axis=-1).astype(jnp.complex128)
         fit = refine_ml_uniform(m, windows, k0, coarse, noise_var, grid_half_width_m=cfg.grid_half_width_m,
                                 grid_points=cfg.grid_points, max_steps=cfg.max_steps,
-                                candidates=cfg.grid_candidates)
+                                candidates=cfg.grid_candidates, grid_max_order=cfg.grid_max_order)
         depth, amplitude, sigma = fit.depth_m, jnp.abs(fit.amplitude), fit.sigma_depth_m
         finite_fit = jnp.isfinite(depth) & jnp.isfinite(sigma) & jnp.isfinite(amplitude) & fit.well_posed
         converged = fit.converged
@@ -312,7 +313,8 @@ def build_config(frequencies_hz, hybrid: Hybrid, modulator: MZM, system_delay_s:
     period = 1 / ((step if uniform else float(np.min(np.diff(f)))) * dominant)
     ambiguity = C * period / 4
     fold, window = delay_window(period, float(system_delay_s))
-    extra = {"max_fit_chi2": float(options.max_fit_chi2), "depth_window_m": window, "fold_index": fold}
+    extra = {"max_fit_chi2": float(options.max_fit_chi2), "depth_window_m": window, "fold_index": fold,
+             "grid_max_order": grid_orders(weights)}
     if options.min_depth_m > 0:
         if not uniform:
             raise ValueError("min_depth_m applies to uniform sweeps only")

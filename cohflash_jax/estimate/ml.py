@@ -35,53 +35,72 @@ STEP_TOLERANCE_SIGMA = 1e-2
 STEP_TOLERANCE_FLOOR_MM = 1e-4
 
 
-def polish_depth(cost, start_mm, *, ceiling, max_steps: int, tolerance_mm=STEP_TOLERANCE_FLOOR_MM):
+def polish_depth(cost, start_mm, *, max_steps: int, tolerance_mm=STEP_TOLERANCE_FLOOR_MM):
     """Minimise a 1-D least-squares cost (depth offset in mm) from a start inside the right
     basin: optimistix Newton on its slope, with the exact second derivative (forward over
     forward). Gauss–Newton drops the residual-curvature term, which at finite SNR makes its
     convergence linear: measured on the 35-frame 10 Hz mode (2560 px), Gauss–Newton took 5.4
     steps on average and 12–16 for the slowest pixel of a batch — and a vmapped solve runs as
     long as its slowest pixel — against 2.2 and 3–5 for Newton, to the same depths (≤ 1e-4 mm).
-    Newton finds maxima as readily as minima, so a polish whose cost ends above `ceiling` (the
-    cost at a point of the start's basin, e.g. its grid point) climbed and is not converged.
-    Returns (offset_mm, converged, num_steps)."""
+    Newton finds maxima as readily as minima: check the cost at the result with `descended`
+    (the caller evaluates it there anyway). Returns (offset_mm, solver_succeeded, num_steps)."""
     slope = lambda x, _: jax.jvp(cost, (x,), (jnp.ones_like(x),))[1]
     solver = optx.Newton(rtol=1e-5, atol=tolerance_mm)
     sol = optx.root_find(slope, solver, start_mm, max_steps=max_steps, throw=False)
-    ok = (sol.result == optx.RESULTS.successful) & (cost(sol.value) <= ceiling * (1 + 1e-9) + 1e-300)
-    return sol.value, ok, sol.stats["num_steps"]
+    return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+
+
+def descended(final_cost, ceiling):
+    """False where a polish climbed: its final cost exceeds `ceiling`, the cost at a point of
+    the start's basin (e.g. its grid point)."""
+    return final_cost <= ceiling * (1 + 1e-9) + 1e-300
+
+
+# three unit phasors (cos, sin) of a tone at a depth: e^{ia}, e^{iθ}, e^{iNa} (`UniformModel.phasors`)
+Phasors = tuple
+
+
+def _cmul(p, q):
+    """Product of complex numbers held as (re, im) pairs."""
+    return p[0] * q[0] - p[1] * q[1], p[0] * q[1] + p[1] * q[0]
+
+
+def shift_phasors(phasors: Phasors, rotation: Phasors) -> Phasors:
+    return tuple(_cmul(p, r) for p, r in zip(phasors, rotation))
 
 
 class WindowTables(eqx.Module):
-    """Per-pixel constants of the DFT bins k0..k0+W−1 (see `dirichlet_window`)."""
+    """Per-pixel constants of the DFT bins k0..k0+W−1: cos and sin of b_k = πk/N, and k."""
 
     cos_b: Float[Array, " W"]
     sin_b: Float[Array, " W"]
-    phase_b: Complex[Array, " W"]
-    sign: Float[Array, " W"]
     bins: Float[Array, " W"]
 
 
 def window_tables(k0: Int[Array, ""], width: int, n: int) -> WindowTables:
+    """b_k = πk/N by angle addition from b_{k0}: two float64 cos/sin a pixel, not 2W."""
+    step = np.pi * np.arange(width) / n
+    k0 = jnp.asarray(k0)
+    b0 = jnp.pi * k0.astype(jnp.float64) / n
+    c0, s0 = jnp.cos(b0), jnp.sin(b0)
     k = (k0 + jnp.arange(width)).astype(jnp.float64)
-    b = jnp.pi * k / n
-    sign = 1.0 - 2.0 * jnp.mod(k, 2)
-    return WindowTables(jnp.cos(b), jnp.sin(b), jnp.exp(-1j * (n - 1) * b), sign, k)
+    return WindowTables(c0 * np.cos(step) - s0 * np.sin(step), s0 * np.cos(step) + c0 * np.sin(step), k)
 
 
 def dirichlet_window(x0: Float[Array, ""], tables: WindowTables, n: int) -> Complex[Array, " W"]:
     """Unitary DFT D(x0 − k/N) = (1/√N) Σ_m e^{i2π(x0 − k/N)m} at the window's bins k.
 
-    Closed form e^{iπ(N−1)x}·sin(πNx)/sin(πx)/√N, expanded with per-bin constants so each
-    call costs five transcendental functions whatever W. At integer x (a tone exactly on a
-    bin) the value is √N; that branch is selected without a 0/0 so gradients stay finite."""
+    Closed form e^{iπ(N−1)(x0 − k/N)}·sin(πN(x0 − k/N))/sin(π(x0 − k/N))/√N; the bin's share
+    of the phase, e^{−iπ(N−1)k/N}, times the (−1)^k of sin(πN x0 − πk) is exactly e^{iπk/N}
+    (no large argument to reduce). At integer x (a tone exactly on a bin) the value is √N;
+    that branch is selected without a 0/0 so gradients stay finite."""
     a = jnp.pi * x0
     num = jnp.sin(n * a)
     den = jnp.sin(a) * tables.cos_b - jnp.cos(a) * tables.sin_b  # sin(π(x0 − k/N))
     on_bin = jnp.abs(den) < 1e-9
     safe = jnp.where(on_bin, 1.0, den)
     pre = jnp.exp(1j * (n - 1) * a) / math.sqrt(n)
-    general = pre * tables.phase_b * (tables.sign * num / safe)
+    general = pre * (tables.cos_b + 1j * tables.sin_b) * (num / safe)
     return jnp.where(on_bin, math.sqrt(n) + 0j, general)
 
 
@@ -102,40 +121,75 @@ class UniformModel(eqx.Module):
     def delay(self, depth_m):
         return self.system_delay_s + 2.0 * depth_m / C
 
-    def tone_column(self, depth_m, tables: WindowTables, max_order: int | None = None) -> Complex[Array, " W"]:
-        """DFT over the window of Σ_{n≥1} 2 w_n cos(2π n f_m τ) (unit amplitude A).
+    def phasors(self, depth_m) -> Phasors:
+        """The first-order phasors at a depth: e^{ia} (a = πΔfτ), e^{iθ} (θ = 2πf₀τ) and
+        e^{iNa}, their angles reduced modulo 2π in float64 before the cos/sin."""
+        tau = self.delay(depth_m)
+        turn = lambda cycles: 2 * jnp.pi * (cycles - jnp.floor(cycles))
+        angles = (turn(0.5 * self.step_hz * tau), turn(self.start_hz * tau), turn(0.5 * self.num_frames * self.step_hz * tau))
+        return tuple((jnp.cos(v), jnp.sin(v)) for v in angles)
+
+    def rotation(self, delta_m, xp=jnp) -> Phasors:
+        """The factors that move `phasors` by `delta_m` of depth: e^{iκδ} for each angle's rate
+        κ (rad/m). With xp=np and a fixed δ (the basin grid) they are constants of the
+        compiled program."""
+        rate_a = 2 * math.pi * self.step_hz / C
+        rates = (rate_a, 4 * math.pi * self.start_hz / C, self.num_frames * rate_a)
+        return tuple((xp.cos(k * delta_m), xp.sin(k * delta_m)) for k in rates)
+
+    def tone_parts(self, depth_m, tables: WindowTables, max_order: int | None = None):
+        """`tone_from_phasors` at a depth."""
+        return self.tone_from_phasors(self.phasors(depth_m), tables, max_order)
+
+    def tone_from_phasors(self, phasors: Phasors, tables: WindowTables, max_order: int | None = None):
+        """Real and imaginary parts (each (W,)) of the DFT over the window of
+        Σ_{n≥1} 2 w_n cos(2π n f_m τ) (unit amplitude A), from the depth's `phasors`.
 
         Each order's cosine is e^{iθ}·D(x) + e^{−iθ}·D(−x) (θ = 2π n f_0 τ, x = n Δf τ), with D
         the `dirichlet_window` kernel. The two kernels share their numerator and per-bin phase,
-        so the pair is u·P_k·(1/sin(πx − b_k) + ū/u·1/sin(πx + b_k)) with u = e^{iθ}·e^{iπ(N−1)x}·
-        sin(πNx)/√N and P_k = e^{−i(N−1)b_k}(−1)^k applied once after the sum over orders:
-        about half the arithmetic of evaluating the two kernels apart (measured: the design
-        ~25 % faster). Bins where a kernel sits exactly on the tone take their limit √N·e^{±iθ}."""
-        tau = self.delay(depth_m)
+        so the pair is u·e^{ib_k}·(1/sin(πx − b_k) + ū/u·1/sin(πx + b_k)) with u = e^{iθ}·
+        e^{iπ(N−1)x}·sin(πNx)/√N, and e^{ib_k} is applied once after the sum over orders.
+        Bins where a kernel sits exactly on the tone take their limit √N·e^{±iθ}.
+
+        Order n's phasors are the first order's to the n-th power, and everything is real
+        arithmetic: XLA's CPU float64 sin/cos cost more than the rest of a 17-bin window
+        together (measured: the projected cost 0.70 µs a pixel with per-order sin/cos in
+        complex128, 0.45 µs with per-order cos/sin in reals, ~0.2 µs with powers)."""
         n = self.num_frames
         top = self.weights.shape[0] - 1 if max_order is None else min(max_order, self.weights.shape[0] - 1)
-        acc_re = acc_im = on_bin_total = 0.0
+        e_a, e_theta, e_na = phasors
+        e_phase = _cmul(_cmul(e_theta, e_na), (e_a[0], -e_a[1]))  # e^{i(θ + (N−1)a)}
+        pow_a, pow_theta, pow_na, pow_phase = e_a, e_theta, e_na, e_phase
+        acc_re = acc_im = on_re = on_im = 0.0
         for order in range(1, top + 1):
-            x = order * self.step_hz * tau
-            theta_cycles = order * self.start_hz * tau
-            theta = 2 * jnp.pi * (theta_cycles - jnp.floor(theta_cycles))
-            a = jnp.pi * x
-            w_num = self.weights[order] * jnp.sin(n * a) / math.sqrt(n)
-            phase = theta + (n - 1) * a
-            u_re, u_im = w_num * jnp.cos(phase), w_num * jnp.sin(phase)
-            p, q = jnp.sin(a) * tables.cos_b, jnp.cos(a) * tables.sin_b
+            if order > 1:
+                pow_a, pow_theta = _cmul(pow_a, e_a), _cmul(pow_theta, e_theta)
+                pow_na, pow_phase = _cmul(pow_na, e_na), _cmul(pow_phase, e_phase)
+            weight = self.weights[order]
+            w_num = weight * pow_na[1] / math.sqrt(n)  # w_n sin(πNx)/√N
+            u_re, u_im = w_num * pow_phase[0], w_num * pow_phase[1]
+            p, q = pow_a[1] * tables.cos_b, pow_a[0] * tables.sin_b
             den_pos, den_neg = p - q, p + q  # sin(πx − b_k), sin(πx + b_k)
             on_pos, on_neg = jnp.abs(den_pos) < 1e-9, jnp.abs(den_neg) < 1e-9
             g_pos = jnp.where(on_pos, 0.0, 1 / jnp.where(on_pos, 1.0, den_pos))
             g_neg = jnp.where(on_neg, 0.0, 1 / jnp.where(on_neg, 1.0, den_neg))
             acc_re = acc_re + u_re * (g_pos + g_neg)
             acc_im = acc_im + u_im * (g_pos - g_neg)
-            rot = jnp.exp(1j * theta) * (self.weights[order] * math.sqrt(n))
-            on_bin_total = on_bin_total + jnp.where(on_pos, rot, 0) + jnp.where(on_neg, jnp.conj(rot), 0)
-        return tables.phase_b * tables.sign * (acc_re + 1j * acc_im) + on_bin_total
+            on_amp = weight * math.sqrt(n)
+            rot_re, rot_im = on_amp * pow_theta[0], on_amp * pow_theta[1]
+            on_re = on_re + jnp.where(on_pos | on_neg, rot_re, 0.0)
+            on_im = on_im + jnp.where(on_pos, rot_im, 0.0) - jnp.where(on_neg, rot_im, 0.0)
+        c, s = tables.cos_b, tables.sin_b
+        return c * acc_re - s * acc_im + on_re, s * acc_re + c * acc_im + on_im
 
-    def dc_column(self, tables: WindowTables) -> Complex[Array, " W"]:
-        return dirichlet_window(jnp.zeros(()), tables, self.num_frames)
+    def tone_column(self, depth_m, tables: WindowTables, max_order: int | None = None) -> Complex[Array, " W"]:
+        """`tone_parts` as one complex array."""
+        re, im = self.tone_parts(depth_m, tables, max_order)
+        return re + 1j * im
+
+    def dc_column(self, tables: WindowTables) -> Float[Array, " W"]:
+        """DFT of the constant 1 over the window: √N at bin 0, zero elsewhere (real)."""
+        return jnp.where(tables.bins == 0, math.sqrt(self.num_frames), 0.0)
 
 
 def _bin_weights(tables: WindowTables, n: int) -> Float[Array, " W"]:
@@ -145,22 +199,37 @@ def _bin_weights(tables: WindowTables, n: int) -> Float[Array, " W"]:
     return jnp.where(edge, 1 / math.sqrt(2), 1.0)
 
 
-def _design(model: UniformModel, depth_m, tables, omega, max_order=None):
-    cols = jnp.stack([model.dc_column(tables), model.tone_column(depth_m, tables, max_order)], axis=1)  # (W, 2)
-    return jnp.concatenate([jnp.real(cols), jnp.imag(cols)], axis=0) * jnp.concatenate([omega, omega])[:, None]
-
-
 def _project(design, y):
     """Least-squares (c, A) for a 2-column real design (explicit 2×2 normal equations,
     ridge-stabilised so a vanishing tone column gives A = 0, not NaN)."""
     a, b = design[:, 0], design[:, 1]
-    g00, g01, g11 = a @ a, a @ b, b @ b
+    coef = _solve_normal(a @ a, a @ b, b @ b, a @ y, b @ y)
+    return coef, y - design @ coef
+
+
+def _solve_normal(g00, g01, g11, r0, r1):
+    """(c, A) from the 2×2 normal equations [[g00, g01], [g01, g11]]·(c, A) = (r0, r1)."""
     ridge = 1e-12 * (g00 + g11) + 1e-300
     g00, g11 = g00 + ridge, g11 + ridge
-    r0, r1 = a @ y, b @ y
     det = g00 * g11 - g01 * g01
-    coef = jnp.stack([(g11 * r0 - g01 * r1) / det, (g00 * r1 - g01 * r0) / det])
-    return coef, y - design @ coef
+    return jnp.stack([(g11 * r0 - g01 * r1) / det, (g00 * r1 - g01 * r0) / det])
+
+
+class WindowData(eqx.Module):
+    """One pixel's weighted window: data y (Re, Im parts), the DC column (real) and the bin
+    weights ω; all (W,). The tone column enters as (Re, Im) parts weighted by ω."""
+
+    y_re: Float[Array, " W"]
+    y_im: Float[Array, " W"]
+    dc: Float[Array, " W"]
+    omega: Float[Array, " W"]
+
+    def project(self, tone_re, tone_im):
+        """Least-squares (c, A) on [dc, tone] (both ω-weighted) and the residual parts."""
+        dc = self.dc
+        coef = _solve_normal(dc @ dc, dc @ tone_re, tone_re @ tone_re + tone_im @ tone_im,
+                             dc @ self.y_re, tone_re @ self.y_re + tone_im @ self.y_im)
+        return coef, self.y_re - dc * coef[0] - tone_re * coef[1], self.y_im - tone_im * coef[1]
 
 
 class FitResult(eqx.Module):
@@ -174,36 +243,49 @@ class FitResult(eqx.Module):
     well_posed: Array  # False where the tone cancels against the offset (`tone_cancels_offset`)
 
 
-def tone_cancels_offset(design, coef, y, factor: float = 4.0):
-    """True where the fitted tone carries more than `factor` × the data's energy: the tone
-    column has become nearly collinear with the offset column (depth → 0, where the tone
-    flattens into a constant) and the two cancel with huge coefficients. Seen at 35 frames on
-    a noise peak near DC: amplitude 3·10⁵ against ~90 for real echoes, SNR 86 dB, σ 0.2 mm —
-    a wild fit that every other check passed. A real echo's tone carries at most the data's
-    energy plus noise."""
-    tone = coef[1] * design[:, 1]
-    return jnp.sum(tone**2) > factor * jnp.sum(y**2)
+def tone_cancels_offset(amplitude_coef, tone_norm_sq, data_norm_sq, factor: float = 4.0):
+    """True where the fitted tone (coefficient `amplitude_coef` on a column of squared norm
+    `tone_norm_sq`) carries more than `factor` × the data's energy: the tone column has become
+    nearly collinear with the offset column (depth → 0, where the tone flattens into a
+    constant) and the two cancel with huge coefficients. Seen at 35 frames on a noise peak
+    near DC: amplitude 3·10⁵ against ~90 for real echoes, SNR 86 dB, σ 0.2 mm — a wild fit
+    that every other check passed. A real echo's tone carries at most the data's energy plus
+    noise."""
+    return amplitude_coef**2 * tone_norm_sq > factor * data_norm_sq
 
 
 def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_depth_m, noise_var,
-               *, grid_half_width_m: float, grid_points: int, max_steps: int, candidates: int = 1) -> FitResult:
-    """ML depth of one pixel from its DFT window (unitary bins k0..k0+W−1)."""
+               *, grid_half_width_m: float, grid_points: int, max_steps: int, candidates: int = 1,
+               grid_max_order: int | None = None) -> FitResult:
+    """ML depth of one pixel from its DFT window (unitary bins k0..k0+W−1). The basin grid
+    models the orders up to `grid_max_order` (all where None); the polish, all of them."""
     n = model.num_frames
     tables = window_tables(k0, window.shape[0], n)
     omega = _bin_weights(tables, n)
     scale = jnp.maximum(jnp.max(jnp.abs(window)), 1e-30)
-    y = jnp.concatenate([jnp.real(window), jnp.imag(window)]) * jnp.concatenate([omega, omega]) / scale
+    data = WindowData(jnp.real(window) * omega / scale, jnp.imag(window) * omega / scale,
+                      model.dc_column(tables) * omega, omega)
 
-    def residual(offset_mm, max_order=None):
-        design = _design(model, coarse_depth_m + 1e-3 * offset_mm, tables, omega, max_order)
-        return _project(design, y)[1]
+    # the tone at the coarse depth; an offset δ rotates its phasors by e^{iκδ} (`rotation`)
+    base = model.phasors(coarse_depth_m)
+
+    def weighted_tone(rotation, max_order=None):
+        re, im = model.tone_from_phasors(shift_phasors(base, rotation), tables, max_order)
+        return re * omega, im * omega
+
+    def cost_at(rotation, max_order=None):
+        _, res_re, res_im = data.project(*weighted_tone(rotation, max_order))
+        return res_re @ res_re + res_im @ res_im
+
+    cost = lambda offset_mm: cost_at(model.rotation(1e-3 * offset_mm))
 
     # basin search: projected cost on a grid spanning ±grid_half_width around the coarse
-    # depth, with every harmonic: where a harmonic's alias falls inside the window the
-    # fundamental-only cost misjudges the ripples (measured: 6× the full cost at the minima on
-    # a 5.1–5.7 GHz sweep)
-    grid_mm = jnp.linspace(-1e3 * grid_half_width_m, 1e3 * grid_half_width_m, grid_points)
-    costs = jax.vmap(lambda g: jnp.sum(residual(g) ** 2))(grid_mm)
+    # depth (its rotations are constants). Where a strong harmonic's alias falls inside the
+    # window the fundamental-only cost misjudges the ripples (measured: 6× the full cost at the
+    # minima on a 5.1–5.7 GHz sweep), so the grid models every order down to `grid_max_order`
+    grid_mm = np.linspace(-1e3 * grid_half_width_m, 1e3 * grid_half_width_m, grid_points)
+    grid_rotations = jax.tree.map(jnp.asarray, model.rotation(1e-3 * grid_mm, xp=np))
+    costs = jax.vmap(lambda r: cost_at(r, grid_max_order))(grid_rotations)
     # polish the best `candidates` local minima of the grid and keep the lowest: where the
     # ripple is narrower than the grid can resolve, the best grid point may sit on the wrong one
     padded = jnp.concatenate([jnp.array([jnp.inf]), costs, jnp.array([jnp.inf])])
@@ -214,69 +296,98 @@ def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_dep
     # the likelihood's ripple) as a − b·cos(2π·depth/period + φ), and at high SNR the grid's
     # sampling error (up to half a spacing off the minimum) outweighs the cost difference
     # between adjacent ripples — the wrong ripple would win (measured on a 5.1–5.7 GHz sweep)
-    spacing = grid_mm[1] - grid_mm[0] if grid_points > 1 else 1.0
+    spacing = float(grid_mm[1] - grid_mm[0]) if grid_points > 1 else 1.0
     mean_f = model.start_hz + 0.5 * model.step_hz * (n - 1)
-    theta = jnp.clip(2 * jnp.pi * 1e-3 * spacing / (C / (4 * mean_f)), 1e-3, 3.0)  # grid step in cost phase
+    theta = min(max(2 * math.pi * 1e-3 * spacing / (C / (4 * mean_f)), 1e-3), 3.0)  # grid step in cost phase
     interior = jnp.isfinite(left) & jnp.isfinite(right)
     l_, r_ = jnp.where(interior, left, costs), jnp.where(interior, right, costs)
-    b_cos = (l_ + r_ - 2 * costs) / (2 * (1 - jnp.cos(theta)))
-    b_sin = (r_ - l_) / (2 * jnp.sin(theta))
+    b_cos = (l_ + r_ - 2 * costs) / (2 * (1 - math.cos(theta)))
+    b_sin = (r_ - l_) / (2 * math.sin(theta))
     amplitude = jnp.hypot(b_cos, b_sin)
-    vertex = costs + b_cos - amplitude
-    shift = jnp.where(amplitude > 0, -jnp.arctan2(b_sin, b_cos) / theta, 0.0)  # in grid spacings
-    order = jnp.argsort(jnp.where(local_min, vertex, jnp.inf))[:candidates]
-    starts = grid_mm[order] + jnp.clip(shift[order], -1.0, 1.0) * spacing
+    vertex = jnp.where(local_min, costs + b_cos - amplitude, jnp.inf)
+    order = jnp.argmin(vertex)[None] if candidates == 1 else jax.lax.top_k(-vertex, candidates)[1]
+    shift = jnp.where(amplitude[order] > 0, -jnp.arctan2(b_sin[order], b_cos[order]) / theta, 0.0)  # in spacings
+    starts = jnp.asarray(grid_mm)[order] + jnp.clip(shift, -1.0, 1.0) * spacing
+    # a polish must not end above its grid point's cost with every order modelled (`descended`)
+    if grid_max_order is None or grid_max_order >= model.weights.shape[0] - 1:
+        ceilings = costs[order]
+    else:
+        ceilings = jax.vmap(cost_at)(jax.tree.map(lambda v: v[order], grid_rotations))
     # step tolerance from the closed-form phase-locked bound at the window's peak amplitude
     # (a tone a·cos has unitary DFT peak a·√N/2 on a bin)
     tone_amplitude = 2 * scale / math.sqrt(n)
     sigma_pred_mm = 1e3 * phase_locked_sigma_m(model.sum_angular_frequency_sq(), tone_amplitude, noise_var)
     tolerance_mm = jnp.maximum(STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA * sigma_pred_mm)
+    polish = lambda start: polish_depth(cost, start, max_steps=max_steps, tolerance_mm=tolerance_mm)
 
-    def polish(start, ceiling):
-        return polish_depth(lambda x: jnp.sum(residual(x) ** 2), start, ceiling=ceiling, max_steps=max_steps,
-                            tolerance_mm=tolerance_mm)
+    def final_fit(offset_mm):
+        """The fit at a depth: (c, A), cost, the weighted tone and its derivative in depth
+        (one JVP: the Jacobian's depth column)."""
+        tone, d_tone_per_mm = jax.jvp(lambda x: weighted_tone(model.rotation(1e-3 * x)), (offset_mm,),
+                                      (jnp.ones_like(offset_mm),))
+        coef, res_re, res_im = data.project(*tone)
+        return coef, res_re @ res_re + res_im @ res_im, tone, jax.tree.map(lambda v: 1e3 * v, d_tone_per_mm)
 
     if candidates > 1:
-        values, oks, steps = jax.vmap(polish)(starts, costs[order])
-        coefs, residuals = jax.vmap(lambda v: _project(_design(model, coarse_depth_m + 1e-3 * v, tables, omega), y))(values)
-        finals = jnp.sum(residuals**2, axis=-1)
-        finals = jnp.where(jnp.isfinite(finals), finals, jnp.inf)
+        values, solved, steps = jax.vmap(polish)(starts)
+        coefs, finals, tones, d_tones = jax.vmap(final_fit)(values)
+        oks = solved & descended(finals, ceilings)
+        ranked = jnp.where(jnp.isfinite(finals), finals, jnp.inf)
         # Where ripples are narrower than a bin, (A, τ) and (−A, τ + half a ripple) fit almost
         # equally: the carrier alignment made A·w_0 > 0, so prefer a positive amplitude.
         amps = coefs[:, 1]
-        finals = jnp.where((amps >= 0) | jnp.all(amps < 0), finals, jnp.inf)
-        best = jnp.argmin(finals)
-        offset_mm, ok, num_steps = values[best], oks[best], steps[best]
-    else:  # one basin: no comparison, so its cost is computed once, below
-        offset_mm, ok, num_steps = polish(starts[0], costs[order[0]])
+        best = jnp.argmin(jnp.where((amps >= 0) | jnp.all(amps < 0), ranked, jnp.inf))
+        pick = lambda tree: jax.tree.map(lambda leaf: leaf[best], tree)
+        offset_mm, ok, num_steps, coef, cost_final, tone, d_tone = pick(
+            (values, oks, steps, coefs, finals, tones, d_tones))
+    else:  # one basin: no comparison
+        offset_mm, solved, num_steps = polish(starts[0])
+        coef, cost_final, tone, d_tone = final_fit(offset_mm)
+        ok = solved & descended(cost_final, ceilings[0])
     depth = coarse_depth_m + 1e-3 * offset_mm
-    # the design and its derivative in depth from one JVP (the Jacobian's depth column)
-    design, d_design = jax.jvp(lambda d: _design(model, d, tables, omega), (depth,), (jnp.ones_like(depth),))
-    d_tone = d_design[:, 1]
-    coef, res = _project(design, y)
-    cost = jnp.sum(res**2)
+    (t_re, t_im), (dt_re, dt_im) = tone, d_tone
     # Fisher information of (depth, c, A): components of a unitary DFT of white noise of
     # variance σ² carry σ²/2 each (the weights ω already account for DC/Nyquist bins).
-    # Jacobian of the model in (depth, c, A): the design's two columns and the JVP in depth
-    jac = jnp.stack([coef[1] * scale * d_tone, design[:, 0], design[:, 1]], axis=1)
-    fisher = jac.T @ jac / (0.5 * jnp.maximum(noise_var, 1e-30))
+    # Jacobian columns (in units of the scaled data): depth A·∂tone/∂depth, offset dc, amplitude tone
+    amp = coef[1]
+    tone_sq = t_re @ t_re + t_im @ t_im
+    f_dd = amp**2 * (dt_re @ dt_re + dt_im @ dt_im)
+    f_dc, f_da = amp * (dt_re @ data.dc), amp * (dt_re @ t_re + dt_im @ t_im)
+    f_cc, f_ca, f_aa = data.dc @ data.dc, data.dc @ t_re, tone_sq
     # σ² of depth = [F⁻¹]₀₀ = 1/(F₀₀ − F₀ᵣ F_rr⁻¹ F_r0): Schur complement with an explicit 2×2 inverse
-    frr = fisher[1:, 1:] + 1e-12 * jnp.trace(fisher[1:, 1:]) * jnp.eye(2) + 1e-300 * jnp.eye(2)
-    det = frr[0, 0] * frr[1, 1] - frr[0, 1] * frr[1, 0]
-    inv = jnp.array([[frr[1, 1], -frr[0, 1]], [-frr[1, 0], frr[0, 0]]]) / det
-    schur = fisher[0, 0] - fisher[0, 1:] @ inv @ fisher[1:, 0]
+    ridge = 1e-12 * (f_cc + f_aa) + 1e-300
+    f_cc, f_aa = f_cc + ridge, f_aa + ridge
+    det = f_cc * f_aa - f_ca**2
+    schur = (f_dd - (f_aa * f_dc**2 - 2 * f_ca * f_dc * f_da + f_cc * f_da**2) / det) * scale**2
+    schur = schur / (0.5 * jnp.maximum(noise_var, 1e-30))
     sigma = jnp.where(schur > 0, 1 / jnp.sqrt(jnp.maximum(schur, 1e-300)), jnp.inf)
-    return FitResult(depth, coef[0] * scale, coef[1] * scale, sigma, ok & jnp.isfinite(cost), num_steps, cost * scale**2,
-                     ~tone_cancels_offset(design, coef, y))
+    data_sq = data.y_re @ data.y_re + data.y_im @ data.y_im
+    return FitResult(depth, coef[0] * scale, amp * scale, sigma, ok & jnp.isfinite(cost_final), num_steps,
+                     cost_final * scale**2, ~tone_cancels_offset(amp, tone_sq, data_sq))
 
 
 def refine_ml_uniform(model: UniformModel, windows, k0, coarse_depth_m, noise_var, *,
                       grid_half_width_m: float, grid_points: int, max_steps: int = 16,
-                      candidates: int = 1) -> FitResult:
+                      candidates: int = 1, grid_max_order: int | None = None) -> FitResult:
     """`refine_one` vmapped over pixels (the leading axis of every array argument)."""
     fn = lambda w, k, d, v: refine_one(model, w, k, d, v, grid_half_width_m=grid_half_width_m,
-                                       grid_points=grid_points, max_steps=max_steps, candidates=candidates)
+                                       grid_points=grid_points, max_steps=max_steps, candidates=candidates,
+                                       grid_max_order=grid_max_order)
     return jax.vmap(fn)(windows, k0, coarse_depth_m, noise_var)
+
+
+# The basin grid leaves out sideband orders whose weight is below this fraction of the
+# dominant tone's: a tone of relative amplitude ε left unmodelled adds ε²·(signal energy) to
+# every grid cost alike (1e-4 of it at ε = 1 %), far below both the noise near the SNR
+# threshold and the differences between ripples at high SNR; the polish models every order.
+GRID_MIN_RELATIVE_WEIGHT = 1e-2
+
+
+def grid_orders(weights) -> int:
+    """The highest sideband order the basin grid models (`GRID_MIN_RELATIVE_WEIGHT`)."""
+    w = np.abs(np.asarray(weights, np.float64))[1:]
+    keep = np.nonzero(w >= GRID_MIN_RELATIVE_WEIGHT * w.max())[0]
+    return int(keep.max() + 1)
 
 
 def grid_for(sweep_bin_depth_m: float, ripple_m: float, half_width_bins: float = 1.0,

@@ -17,7 +17,7 @@ from jaxtyping import Array, Float
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from .coarse import first_argmax
-from .ml import FitResult, polish_depth, tone_cancels_offset
+from .ml import FitResult, descended, polish_depth, tone_cancels_offset
 
 
 def depth_grid(frequencies_hz: np.ndarray, depth_window_m: tuple[float, float], points_per_envelope: int = 4) -> np.ndarray:
@@ -73,11 +73,12 @@ def refine_time_domain(r: Float[Array, " N"], frequencies_hz: Float[Array, " N"]
 
     grid_mm = jnp.linspace(-1e3 * grid_half_width_m, 1e3 * grid_half_width_m, grid_points)
     costs = jax.vmap(lambda g: jnp.sum(residual(g) ** 2))(grid_mm)
-    offset_mm, converged, num_steps = polish_depth(lambda x: jnp.sum(residual(x) ** 2), grid_mm[jnp.argmin(costs)],
-                                                   ceiling=jnp.min(costs), max_steps=max_steps)
+    offset_mm, solved, num_steps = polish_depth(lambda x: jnp.sum(residual(x) ** 2), grid_mm[jnp.argmin(costs)],
+                                                max_steps=max_steps)
     depth = coarse_depth_m + 1e-3 * offset_mm
     final = design(depth)
     coef, res = _project(final, y)
+    converged = solved & descended(jnp.sum(res**2), jnp.min(costs))
     amp = coef[1] * scale
     d_tone = jax.jvp(lambda d: design(d)[:, 1], (depth,), (jnp.ones_like(depth),))[1]
     cols = jnp.stack([jnp.ones_like(f), final[:, 1], amp * d_tone], axis=1)
@@ -85,4 +86,4 @@ def refine_time_domain(r: Float[Array, " N"], frequencies_hz: Float[Array, " N"]
     cov = jnp.linalg.inv(fisher + 1e-300 * jnp.eye(3))
     sigma = jnp.where(cov[2, 2] > 0, jnp.sqrt(jnp.abs(cov[2, 2])), jnp.inf)
     return FitResult(depth, coef[0] * scale, amp, sigma, converged, num_steps, jnp.sum(res**2) * scale**2,
-                     ~tone_cancels_offset(final, coef, y))
+                     ~tone_cancels_offset(coef[1], final[:, 1] @ final[:, 1], y @ y))
