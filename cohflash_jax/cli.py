@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from cohflash_jax.design import PARAMETERS
+from cohflash_jax.reconstruct import DEFAULT_SNR_THRESHOLD_DB
 from cohflash_jax.runtime import enable_compilation_cache
 
 
@@ -423,7 +424,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "relative to the median depth (default: 1st–99th percentile)")
     r.add_argument("--tile-rows", type=int, default=32, help="rows per streamed tile (memory vs speed; "
                    "32 matches the chunking cohflash writes)")
-    r.add_argument("--snr-threshold-db", type=float, default=None)
+    r.add_argument("--snr-threshold-db", type=float, default=None,
+                   help=f"validity threshold on the peak-bin SNR (default {DEFAULT_SNR_THRESHOLD_DB:g} dB; raised "
+                        "by 10·log10(1/(1 − √(2/(N−1)))) for the noise estimate's error from N frames)")
     r.add_argument("--dtype", choices=("float32", "float64"), default="float32",
                    help="I/Q and FFT precision (ML always float64)")
     r.add_argument("--quiet", action="store_true")
@@ -511,8 +514,6 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if getattr(args, "snr_threshold_db", 0) is None:
-        from cohflash_jax.reconstruct import DEFAULT_SNR_THRESHOLD_DB
-
         args.snr_threshold_db = DEFAULT_SNR_THRESHOLD_DB
     enable_compilation_cache()
     try:

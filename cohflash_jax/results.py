@@ -1,7 +1,8 @@
 """Depth result file (HDF5, `cohflash-depth` v1) and exports (preview PNG, float TIFF, PLY).
 
 depth.h5 — root attributes: format = "cohflash-depth", format_version = 1, method,
-ambiguity_m, depth_window_m, bin_depth_m, carrier_alignment, snr_threshold_db, status_codes (JSON),
+ambiguity_m, depth_window_m, bin_depth_m, carrier_alignment, snr_threshold_db,
+snr_threshold_effective_db, status_codes (JSON),
 provenance (JSON: input name, size, mtime, package version, options). Datasets (H, W):
 depth_m float64 (range along the pixel's ray, after τ_sys), amplitude float32 (the 2-D
 intensity image, signal DN), valid uint8, sigma_m float32 (CRLB from fitted amplitude and

@@ -434,6 +434,81 @@ def test_a_fit_whose_tone_cancels_the_offset_is_flagged_not_valid():
     assert np.isfinite(out["depth_m"][0, 0])
 
 
+def test_fits_that_trade_depth_against_the_offset_near_dc_are_flagged():
+    """35 frames (10 Hz mode): four pixels at 5 % and 3 % reflectance (frames in tests/data)
+    whose fits slid from noise peaks ~1 bin deep to ~4 mm, reporting SNRs of 16–21 dB and
+    amplitudes 3–7× the echo's while ~100 mm off. There the tone trades off with the offset:
+    the depth's variance inflation F_dd·[F⁻¹]_dd is ~10³. Noiseless targets show where the
+    check bites: computed independently (3×3 Fisher of the explicit two-kernel model), the
+    inflation exceeds 4 within ~½ bin of 0 and is ≈ 1 beyond, and exactly those pixels are
+    flagged; the others are exact to 1 µm."""
+    from pathlib import Path
+
+    import jax.numpy as jnp
+
+    from cohflash_jax.estimate import ml
+    from cohflash_jax.reconstruct import FIT_FAILED
+
+    frames = np.load(Path(__file__).parent / "data" / "near_dc_fits_35_frames.npy")[:, :, None, :]
+    n = frames.shape[1]
+    sweep = cf.FrequencySweep.uniform(6e9 / n, 6e9 / n, n)
+    out = reconstruct_array(frames, sweep.frequencies_hz, OPTS["ml"])
+    assert np.all(out["fit_status"] == FIT_FAILED) and not out["valid"].any()
+    assert np.all(10 * np.log10(out["snr"]) > 16) and np.all(out["depth_m"] < 0.006)
+
+    depths = np.array([0.004, 0.009, 0.02, 0.05, 0.3])
+    inst = cf.Instrument(sweep=sweep, frame_rate_hz=350.0, sensor=cf.Sensor(exposure_s=2e-3))
+    clean = reconstruct_array(cf.simulate(depth_scene(depths, effects=("sidebands",)), inst, 8, 8, jax.random.key(0)),
+                              sweep.frequencies_hz, OPTS["ml"])
+    status, valid, found = (clean[k].ravel()[:5] for k in ("fit_status", "valid", "depth_m"))
+    weights = cf.MZM().weights(float(np.mean(sweep.frequencies_hz)))
+    model = ml.UniformModel(float(sweep.frequencies_hz[0]), float(sweep.step_hz), jnp.asarray(weights), 0.0,
+                            num_frames=n)
+    tables = ml.window_tables(jnp.asarray(0), 17, n)
+
+    def window(params):  # c·DC + A·Σ_n 2w_n cos(2π n f_m τ) over bins 0..16, two kernels an order
+        depth, offset, amp = params
+        tau = 2 * depth / C
+        tone = sum(model.weights[k] * (jnp.exp(2j * jnp.pi * k * model.start_hz * tau)
+                                       * ml.dirichlet_window(k * model.step_hz * tau, tables, n)
+                                       + jnp.exp(-2j * jnp.pi * k * model.start_hz * tau)
+                                       * ml.dirichlet_window(-k * model.step_hz * tau, tables, n))
+                   for k in range(1, model.weights.shape[0]))
+        col = offset * ml.dirichlet_window(jnp.zeros(()), tables, n) + amp * tone
+        return jnp.concatenate([jnp.real(col), jnp.imag(col)]) * jnp.tile(ml._bin_weights(tables, n), 2)
+
+    for depth, code in zip(depths, status):
+        jac = jax.jacfwd(window)(jnp.asarray([depth, 1.0, 1.0]))
+        fisher = np.asarray(jac.T @ jac)
+        inflation = fisher[0, 0] * np.linalg.inv(fisher)[0, 0]
+        assert (inflation > ml.MAX_VARIANCE_INFLATION) == (code == FIT_FAILED), (depth, inflation, code)
+        assert (inflation > 30) if depth < 0.01 else (inflation < 1.2)
+    assert np.all(valid[2:]) and np.max(np.abs(found[2:] - depths[2:])) < 1e-6
+
+
+def test_snr_threshold_is_raised_for_the_noise_estimate_from_few_frames():
+    """The SNR's σ² comes from the pixel's own N frames (relative error √(2/(N−1))): the
+    threshold applied is raised by 1/(1 − √(2/(N−1))) and recorded; a 35-frame pixel between
+    14 dB and the raised threshold is low_snr."""
+    from cohflash_jax.radiometry import PAPER_PROBE_POWER_W, LinkBudget
+    from cohflash_jax.reconstruct import DEFAULT_SNR_THRESHOLD_DB, LOW_SNR, snr_threshold_margin
+
+    assert 10 * np.log10(snr_threshold_margin(3000)) == pytest.approx(0.114, abs=1e-3)
+    assert 10 * np.log10(snr_threshold_margin(35)) == pytest.approx(1.206, abs=1e-3)
+    n = 35
+    sweep = cf.FrequencySweep.uniform(6e9 / n, 6e9 / n, n)
+    inst = cf.Instrument(sweep=sweep, frame_rate_hz=350.0, sensor=cf.Sensor(exposure_s=2e-3),
+                         link=LinkBudget(probe_power_w=10 * PAPER_PROBE_POWER_W))
+    frames = cf.simulate(cf.planar(reflectance=0.5, effects=("shot_noise", "read_noise")), inst, 16, 16,
+                         jax.random.key(3))
+    out = reconstruct_array(frames, sweep.frequencies_hz, OPTS["ml"])
+    snr_db = 10 * np.log10(out["snr"])
+    applied = DEFAULT_SNR_THRESHOLD_DB + 10 * np.log10(snr_threshold_margin(n))
+    assert np.all(snr_db[out["valid"]] >= applied)
+    between = (snr_db >= DEFAULT_SNR_THRESHOLD_DB) & (snr_db < applied)
+    assert between.sum() >= 5 and np.all(out["fit_status"][between] == LOW_SNR)
+
+
 def test_compilation_cache_folder_is_created_set_and_can_be_turned_off(tmp_path, monkeypatch):
     from cohflash_jax.runtime import enable_compilation_cache
 

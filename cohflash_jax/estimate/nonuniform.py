@@ -17,7 +17,7 @@ from jaxtyping import Array, Float
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from .coarse import first_argmax
-from .ml import FitResult, descended, polish_depth, tone_cancels_offset
+from .ml import MAX_VARIANCE_INFLATION, FitResult, descended, polish_depth, tone_cancels_offset, variance_inflation
 
 
 def depth_grid(frequencies_hz: np.ndarray, depth_window_m: tuple[float, float], points_per_envelope: int = 4) -> np.ndarray:
@@ -85,5 +85,6 @@ def refine_time_domain(r: Float[Array, " N"], frequencies_hz: Float[Array, " N"]
     fisher = cols.T @ cols / jnp.maximum(noise_var, 1e-30)
     cov = jnp.linalg.inv(fisher + 1e-300 * jnp.eye(3))
     sigma = jnp.where(cov[2, 2] > 0, jnp.sqrt(jnp.abs(cov[2, 2])), jnp.inf)
-    return FitResult(depth, coef[0] * scale, amp, sigma, converged, num_steps, jnp.sum(res**2) * scale**2,
-                     ~tone_cancels_offset(coef[1], final[:, 1] @ final[:, 1], y @ y))
+    inflation = variance_inflation(fisher[2, 2], 1 / jnp.where(cov[2, 2] > 0, cov[2, 2], jnp.inf))
+    well_posed = ~tone_cancels_offset(coef[1], final[:, 1] @ final[:, 1], y @ y) & (inflation <= MAX_VARIANCE_INFLATION)
+    return FitResult(depth, coef[0] * scale, amp, sigma, converged, num_steps, jnp.sum(res**2) * scale**2, well_posed)
