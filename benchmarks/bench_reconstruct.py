@@ -73,21 +73,19 @@ def child_ten_hz() -> dict:
     """The paper's 10 Hz mode: 35 frames at 350 Hz over the full band, here 0.17–6 GHz with
     f_0 = Δf = 171.4 MHz (a harmonic comb: the phase-locked model is then periodic in delay
     with period 1/Δf, so depths wrap cleanly into the c/(4Δf) = 0.44 m interval). Planar
-    target at 30.5 m with 10× the paper's probe power, so that 35-frame pixels clear the
-    14 dB threshold (at the paper's power they are flagged low-SNR). Full frame (256×320),
-    in memory; per depth map after compilation."""
+    target at 30.5 m with 10× the paper's probe power (`cohflash_experiments.precision_table.
+    ten_hz_mode`), about the SNR threshold (at the paper's power the pixels are flagged
+    low-SNR). Full frame (256×320), in memory; per depth map after compilation."""
     import jax
     import numpy as np
 
     import cohflash_jax as cf
-    from cohflash_jax.radiometry import PAPER_PROBE_POWER_W, LinkBudget
+    from cohflash_experiments.precision_table import ten_hz_mode
     from cohflash_jax.reconstruct import ReconstructOptions, reconstruct_array
     from cohflash_jax.scenes import planar
 
-    n = 35
-    sweep = cf.FrequencySweep.uniform(6e9 / n, 6e9 / n, n)
-    inst = cf.Instrument(sweep=sweep, frame_rate_hz=350.0, sensor=cf.Sensor(exposure_s=2e-3),
-                         link=LinkBudget(probe_power_w=10 * PAPER_PROBE_POWER_W))
+    inst = ten_hz_mode()
+    sweep = inst.sweep
     frames = np.asarray(cf.simulate(planar(effects=("shot_noise", "read_noise", "quantization", "sidebands")),
                                     inst, 256, 320, jax.random.key(0)))
     res = {}

@@ -446,18 +446,18 @@ def test_fits_that_trade_depth_against_the_offset_near_dc_are_flagged():
 
     import jax.numpy as jnp
 
+    from cohflash_experiments.precision_table import ten_hz_mode
     from cohflash_jax.estimate import ml
     from cohflash_jax.reconstruct import FIT_FAILED
 
     frames = np.load(Path(__file__).parent / "data" / "near_dc_fits_35_frames.npy")[:, :, None, :]
-    n = frames.shape[1]
-    sweep = cf.FrequencySweep.uniform(6e9 / n, 6e9 / n, n)
+    inst = ten_hz_mode()
+    sweep, n = inst.sweep, frames.shape[1]
     out = reconstruct_array(frames, sweep.frequencies_hz, OPTS["ml"])
     assert np.all(out["fit_status"] == FIT_FAILED) and not out["valid"].any()
     assert np.all(10 * np.log10(out["snr"]) > 16) and np.all(out["depth_m"] < 0.006)
 
     depths = np.array([0.004, 0.009, 0.02, 0.05, 0.3])
-    inst = cf.Instrument(sweep=sweep, frame_rate_hz=350.0, sensor=cf.Sensor(exposure_s=2e-3))
     clean = reconstruct_array(cf.simulate(depth_scene(depths, effects=("sidebands",)), inst, 8, 8, jax.random.key(0)),
                               sweep.frequencies_hz, OPTS["ml"])
     status, valid, found = (clean[k].ravel()[:5] for k in ("fit_status", "valid", "depth_m"))
@@ -490,15 +490,13 @@ def test_snr_threshold_is_raised_for_the_noise_estimate_from_few_frames():
     """The SNR's σ² comes from the pixel's own N frames (relative error √(2/(N−1))): the
     threshold applied is raised by 1/(1 − √(2/(N−1))) and recorded; a 35-frame pixel between
     14 dB and the raised threshold is low_snr."""
-    from cohflash_jax.radiometry import PAPER_PROBE_POWER_W, LinkBudget
+    from cohflash_experiments.precision_table import ten_hz_mode
     from cohflash_jax.reconstruct import DEFAULT_SNR_THRESHOLD_DB, LOW_SNR, snr_threshold_margin
 
     assert 10 * np.log10(snr_threshold_margin(3000)) == pytest.approx(0.114, abs=1e-3)
     assert 10 * np.log10(snr_threshold_margin(35)) == pytest.approx(1.206, abs=1e-3)
-    n = 35
-    sweep = cf.FrequencySweep.uniform(6e9 / n, 6e9 / n, n)
-    inst = cf.Instrument(sweep=sweep, frame_rate_hz=350.0, sensor=cf.Sensor(exposure_s=2e-3),
-                         link=LinkBudget(probe_power_w=10 * PAPER_PROBE_POWER_W))
+    inst = ten_hz_mode()
+    sweep, n = inst.sweep, inst.sweep.frequencies_hz.size
     frames = cf.simulate(cf.planar(reflectance=0.5, effects=("shot_noise", "read_noise")), inst, 16, 16,
                          jax.random.key(3))
     out = reconstruct_array(frames, sweep.frequencies_hz, OPTS["ml"])
