@@ -42,6 +42,11 @@ POOR_FIT = 9
 DC_EDGE = 10
 DEFAULT_SNR_THRESHOLD_DB = 14.0
 
+# Reduced χ² of the ML window fit above which the model does not describe the pixel (measured:
+# ≤ 2.9 at 30 dB peak-bin SNR with sidebands and roll-off; ~18 when carrier tracking failed
+# through an uncalibrated hybrid and the "tone" found was drift clutter near DC)
+DEFAULT_MAX_FIT_CHI2 = 5.0
+
 
 def snr_threshold_margin(num_frames: int) -> float:
     """Factor on the SNR threshold for the noise variance's own estimation error: σ² comes from
@@ -49,12 +54,8 @@ def snr_threshold_margin(num_frames: int) -> float:
     its SNR with σ² one standard deviation above the estimate clears the threshold (N = 3000:
     +0.11 dB; N = 35: +1.2 dB). Measured on the 35-frame 10 Hz mode at falling reflectance
     (112 k pixels): the fits more than 5 CRLB off reached 14.16 dB of measured SNR, so a bare
-    14 dB threshold passed 4 of 5051 pixels off by a ripple; none reached 15 dB."""
+    14 dB threshold passed 4 of 5051 such pixels; none reached 15 dB."""
     return 1.0 / max(1.0 - math.sqrt(2.0 / max(num_frames - 1, 1)), 0.25)
-# Reduced χ² of the ML window fit above which the model does not describe the pixel (measured:
-# ≤ 2.9 at 30 dB peak-bin SNR with sidebands and roll-off; ~18 when carrier tracking failed
-# through an uncalibrated hybrid and the "tone" found was drift clutter near DC)
-DEFAULT_MAX_FIT_CHI2 = 5.0
 
 
 class TileConfig(eqx.Module):

@@ -216,13 +216,12 @@ def _solve_normal(g00, g01, g11, r0, r1):
 
 
 class WindowData(eqx.Module):
-    """One pixel's weighted window: data y (Re, Im parts), the DC column (real) and the bin
-    weights ω; all (W,). The tone column enters as (Re, Im) parts weighted by ω."""
+    """One pixel's window weighted by the bin weights ω: data y (Re, Im parts) and the DC
+    column (real); all (W,). The tone column enters as (Re, Im) parts weighted alike."""
 
     y_re: Float[Array, " W"]
     y_im: Float[Array, " W"]
     dc: Float[Array, " W"]
-    omega: Float[Array, " W"]
 
     def project(self, tone_re, tone_im):
         """Least-squares (c, A) on [dc, tone] (both ω-weighted) and the residual parts."""
@@ -283,7 +282,7 @@ def refine_one(model: UniformModel, window: Complex[Array, " W"], k0, coarse_dep
     omega = _bin_weights(tables, n)
     scale = jnp.maximum(jnp.max(jnp.abs(window)), 1e-30)
     data = WindowData(jnp.real(window) * omega / scale, jnp.imag(window) * omega / scale,
-                      model.dc_column(tables) * omega, omega)
+                      model.dc_column(tables) * omega)
 
     # the tone at the coarse depth; an offset δ rotates its phasors by e^{iκδ} (`rotation`)
     base = model.phasors(coarse_depth_m)
