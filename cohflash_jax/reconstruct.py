@@ -58,6 +58,11 @@ def snr_threshold_margin(num_frames: int) -> float:
     return 1.0 / max(1.0 - math.sqrt(2.0 / max(num_frames - 1, 1)), 0.25)
 
 
+def applied_snr_threshold_db(threshold_db: float, num_frames: int) -> float:
+    """The SNR threshold (dB) a reconstruction of N frames applies for a requested one."""
+    return threshold_db + 10 * math.log10(snr_threshold_margin(num_frames))
+
+
 class TileConfig(eqx.Module):
     iq_weights: jax.Array
     iq_bias: jax.Array
@@ -342,7 +347,7 @@ def build_config(frequencies_hz, hybrid: Hybrid, modulator: MZM, system_delay_s:
         extra.pop("min_bin", None)
     return TileConfig(iq_w, iq_b, model, saturation_dn, options.method, options.tracking,
                       options.track_window_frames, options.window_bins, half, points, candidates, options.max_steps,
-                      dominant, ambiguity, bin_depth, 10 ** (options.snr_threshold_db / 10) * snr_threshold_margin(n),
+                      dominant, ambiguity, bin_depth, 10 ** (applied_snr_threshold_db(options.snr_threshold_db, n) / 10),
                       options.dtype, **extra)
 
 

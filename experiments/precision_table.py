@@ -22,7 +22,8 @@ import cohflash_jax as cf
 from cohflash_jax.constants import SPEED_OF_LIGHT_M_PER_S as C
 from cohflash_jax.fileio import write_csv
 from cohflash_jax.estimate.ml import crlb_frequency_only_m, crlb_phase_locked_m
-from cohflash_jax.reconstruct import DEFAULT_SNR_THRESHOLD_DB, ReconstructOptions, reconstruct_array, snr_threshold_margin
+from cohflash_jax.reconstruct import (DEFAULT_SNR_THRESHOLD_DB, ReconstructOptions, applied_snr_threshold_db,
+                                      reconstruct_array)
 
 NOISE = ("shot_noise", "read_noise", "dark_current", "quantization")
 
@@ -90,7 +91,7 @@ def run(out: Path, seeds: int, size: int = 16):
     x = [r["median_snr_db"] for r in trows]
     ax.plot(x, [r["x_crlb"] for r in trows], "o-", label="ML inlier std / CRLB")
     ax.plot(x, [r["outlier_fraction"] for r in trows], "s-", label="outlier fraction (|err| > 5 CRLB)")
-    applied_db = DEFAULT_SNR_THRESHOLD_DB + 10 * np.log10(snr_threshold_margin(inst.sweep.frequencies_hz.size))
+    applied_db = applied_snr_threshold_db(DEFAULT_SNR_THRESHOLD_DB, inst.sweep.frequencies_hz.size)
     ax.axvline(applied_db, color="0.5", ls="--", label=f"default validity threshold {applied_db:.2f} dB "
                f"({DEFAULT_SNR_THRESHOLD_DB:g} dB + noise-estimate margin)")
     ax.set_xlabel("measured peak-bin SNR (dB)")
@@ -134,7 +135,7 @@ def ten_hz_threshold(out: Path, seeds: int, size: int = 64, distance_m: float = 
             snr_db.append(10 * np.log10(np.maximum(res["snr"].ravel()[ok], 1e-30)))
             outlier.append(np.abs(res["depth_m"].ravel()[ok] - truth) > 5 * bound)
     snr_db, outlier = np.concatenate(snr_db), np.concatenate(outlier)
-    applied = DEFAULT_SNR_THRESHOLD_DB + 10 * np.log10(snr_threshold_margin(f.size))
+    applied = applied_snr_threshold_db(DEFAULT_SNR_THRESHOLD_DB, f.size)
     rows = [{"threshold_db": t, "pixels_above": int((snr_db >= t).sum()), "outliers_above": int(outlier[snr_db >= t].sum()),
              "default_applied": bool(abs(t - applied) < 1e-9)}
             for t in sorted({12.0, 13.0, 14.0, 15.0, 16.0, float(applied)})]

@@ -358,6 +358,23 @@ def test_system_delay_moves_the_unambiguous_window_and_depths_stay_exact(system_
     assert cfg.depth_window_m == (start, end) and cfg.fold_index == fold
 
 
+def _two_kernel_tone(model, depth, tables):
+    """Σ_n w_n (e^{iθ_n} D(x_n) + e^{−iθ_n} D(−x_n)) over the window: the tone column written
+    out with `dirichlet_window`, two kernels an order (the reference for `tone_column`)."""
+    import jax.numpy as jnp
+
+    from cohflash_jax.estimate import ml
+
+    tau = model.delay(depth)
+    total = 0
+    for order in range(1, model.weights.shape[0]):
+        x, cycles = order * model.step_hz * tau, order * model.start_hz * tau
+        rot = jnp.exp(2j * jnp.pi * (cycles - jnp.floor(cycles)))
+        total = total + model.weights[order] * (rot * ml.dirichlet_window(x, tables, model.num_frames)
+                                                + jnp.conj(rot) * ml.dirichlet_window(-x, tables, model.num_frames))
+    return total
+
+
 def test_tone_column_equals_the_two_dirichlet_kernels_of_each_order():
     """`UniformModel.tone_column` folds each order's e^{iθ}D(x) + e^{−iθ}D(−x) into one pass;
     it must equal the two kernels evaluated apart (`dirichlet_window`), on and off a bin, with
@@ -369,23 +386,13 @@ def test_tone_column_equals_the_two_dirichlet_kernels_of_each_order():
     n, width = N_FRAMES, 17
     model = ml.UniformModel(0.1e9, 1.97e6, jnp.asarray([0.29, 0.097, 0.0066, 1.9e-4]), 0.0, num_frames=n)
 
-    def two_kernels(depth, tables):
-        tau = model.delay(depth)
-        total = 0
-        for order in range(1, 4):
-            x, cycles = order * model.step_hz * tau, order * model.start_hz * tau
-            rot = jnp.exp(2j * jnp.pi * (cycles - jnp.floor(cycles)))
-            total = total + model.weights[order] * (rot * ml.dirichlet_window(x, tables, n)
-                                                    + jnp.conj(rot) * ml.dirichlet_window(-x, tables, n))
-        return total
-
     bin_depth = C / (2 * n * model.step_hz)
     depths = [700 * bin_depth, 0.05, 12.68, 37.9, 21.123456, 1e-4]  # on a bin, near DC, alias, edge
     for depth in depths:
         peak = int(round(depth / bin_depth))
         tables = ml.window_tables(jnp.asarray(min(max(peak - width // 2, 0), n // 2 + 1 - width)), width, n)
         d = jnp.asarray(depth)
-        expected = two_kernels(d, tables)
+        expected = _two_kernel_tone(model, d, tables)
         np.testing.assert_allclose(model.tone_column(d, tables), expected, rtol=0, atol=1e-11 * np.max(np.abs(expected)))
         second = jax.jvp(lambda z: jax.jvp(lambda y: model.tone_column(y, tables), (z,), (jnp.ones(()),))[1],
                          (d,), (jnp.ones(()),))[1]
@@ -468,13 +475,7 @@ def test_fits_that_trade_depth_against_the_offset_near_dc_are_flagged():
 
     def window(params):  # c·DC + A·Σ_n 2w_n cos(2π n f_m τ) over bins 0..16, two kernels an order
         depth, offset, amp = params
-        tau = 2 * depth / C
-        tone = sum(model.weights[k] * (jnp.exp(2j * jnp.pi * k * model.start_hz * tau)
-                                       * ml.dirichlet_window(k * model.step_hz * tau, tables, n)
-                                       + jnp.exp(-2j * jnp.pi * k * model.start_hz * tau)
-                                       * ml.dirichlet_window(-k * model.step_hz * tau, tables, n))
-                   for k in range(1, model.weights.shape[0]))
-        col = offset * ml.dirichlet_window(jnp.zeros(()), tables, n) + amp * tone
+        col = offset * ml.dirichlet_window(jnp.zeros(()), tables, n) + amp * _two_kernel_tone(model, depth, tables)
         return jnp.concatenate([jnp.real(col), jnp.imag(col)]) * jnp.tile(ml._bin_weights(tables, n), 2)
 
     for depth, code in zip(depths, status):
