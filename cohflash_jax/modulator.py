@@ -30,12 +30,16 @@ def bessel_j(orders: ArrayLike, x: ArrayLike) -> Float[Array, "..."]:
     at rounding level in float64 and float32 — unlike `jax.scipy.special.bessel_jn`,
     which is NaN at x = 0 and inaccurate for large arguments.
     """
-    n = jnp.asarray(orders)
+    n = jnp.asarray(orders).astype(jnp.int32)
     x = jnp.asarray(x)
     dtype = jnp.result_type(x.dtype, jnp.float32)
-    t = jnp.asarray(2 * np.pi * np.arange(_BESSEL_NODES) / _BESSEL_NODES, dtype=dtype)
-    n_b, x_b = jnp.broadcast_arrays(n.astype(dtype), x.astype(dtype))
-    phase = n_b[..., None] * t - x_b[..., None] * jnp.sin(t)
+    nodes = np.arange(_BESSEL_NODES)
+    n_b, x_b = jnp.broadcast_arrays(n, x.astype(dtype))
+    # n·t_k reduced modulo 2π in integers, (n·k mod M)·2π/M, so the cosine's argument stays
+    # below 2π + |x| at every order: in float32 the rounding of n·t_k itself (up to 200 rad at
+    # order 32) would otherwise dominate, and differ between backends (FMA contraction on GPU)
+    turns = jnp.mod(n_b[..., None] * nodes, _BESSEL_NODES).astype(dtype)
+    phase = turns * (2 * np.pi / _BESSEL_NODES) - x_b[..., None] * jnp.asarray(np.sin(2 * np.pi * nodes / _BESSEL_NODES), dtype)
     return jnp.mean(jnp.cos(phase), axis=-1)
 
 

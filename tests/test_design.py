@@ -62,7 +62,8 @@ def small_design():
 
 def test_design_meets_constraints_and_is_optimal(small_design):
     """Every constraint holds at the optimum; one frame fewer cannot meet them; and the
-    modulation index and bias it chose match an exhaustive grid search of the bound."""
+    modulation index and bias it chose match an exhaustive grid search of the bound over the
+    same feasible set (the sign SNR at the optimiser's margin, SIGN_SNR_MARGIN × the limit)."""
     problem, result = small_design
     assert result.feasible, result.note
     f, v = result.frequencies_hz, result.variables
@@ -82,15 +83,28 @@ def test_design_meets_constraints_and_is_optimal(small_design):
     mask = jnp.ones(result.num_frames)
     fj = jnp.asarray(f)
 
+    snr_floor = design.SIGN_SNR_MARGIN * design.MIN_MEAN_TERM_SNR
+
+    @jax.jit
+    @jax.vmap
     def bound(beta, bias):
         inst = design._instrument(v["probe_power_w"], v["exposure_s"], beta, bias)
         fisher = design._fisher_masked(inst, fj, mask, problem.distance_m, problem.reflectance, design.NOISE, False)
         snr = design.mean_term_snr(inst, fj, mask, problem.distance_m, problem.reflectance)
-        return jnp.where(snr >= design.MIN_MEAN_TERM_SNR, cf.fisher.crlb_from_fisher(fisher), jnp.inf)
+        return jnp.where(snr >= snr_floor, cf.fisher.crlb_from_fisher(fisher), jnp.inf)
 
-    betas, biases = np.meshgrid(np.linspace(0.5, 5.0, 46), np.linspace(0.1, 1.5, 57))
-    best = float(jnp.min(jax.jit(jax.vmap(bound))(jnp.asarray(betas.ravel()), jnp.asarray(biases.ravel()))))
-    assert result.crlb_m <= best * 1.01
+    def grid_min(betas, biases):
+        b, t = np.meshgrid(betas, biases)
+        values = np.asarray(bound(jnp.asarray(b.ravel()), jnp.asarray(t.ravel())))
+        k = int(np.argmin(values))
+        return values[k], b.ravel()[k], t.ravel()[k]
+
+    _, beta0, bias0 = grid_min(np.linspace(0.5, 5.0, 46), np.linspace(0.1, 1.5, 57))  # spacing 0.1, 0.025 rad
+    best, _, _ = grid_min(np.linspace(beta0 - 0.2, beta0 + 0.2, 41), np.linspace(bias0 - 0.05, bias0 + 0.05, 41))
+    # the margin's penalty is soft (the optimum sits ~0.3 % inside it), so it may beat the
+    # grid slightly; measured ratio 1.0001 (the old test's check against the hard limit on
+    # the coarse grid alone passed at 1.0095 on a CPU and failed above 1.01 on a GPU)
+    assert best * 0.99 <= result.crlb_m <= best * 1.002
 
 
 def test_design_validated_by_monte_carlo(small_design):

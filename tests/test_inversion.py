@@ -201,7 +201,7 @@ def test_reconstruct_cli_end_to_end(tmp_path, capsys):
         np.testing.assert_allclose(f.attrs["depth_window_m"], [0.0, C / (4 * 1.97e6)], rtol=1e-12)
         for k in ("depth_m", "amplitude", "valid", "sigma_m", "snr", "fit_status"):
             assert f[k].shape == (8, 8)
-        assert "cohflash_version" in f.attrs["provenance"]
+        assert "cohflash_version" in f.attrs["provenance"] and "jax_device" in f.attrs["provenance"]
         assert np.all(np.abs(f["depth_m"][()] - 30.5) < 5 * f["sigma_m"][()])
     assert (tmp_path / "d.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     ply = (tmp_path / "d.ply").read_bytes()
@@ -299,6 +299,16 @@ def test_sub_tiles_give_the_same_pixels_as_one_tile(paper_instrument, planar_mon
     for k in whole:
         assert parts[k].shape == whole[k].shape
         np.testing.assert_allclose(parts[k], whole[k], rtol=1e-5, atol=1e-9, err_msg=k)
+
+
+def test_sub_tile_size_follows_the_platform():
+    """CPU: cache-sized sub-tiles of at most 2048 px, at least 4 a tile; a GPU takes the tile whole."""
+    from cohflash_jax.reconstruct import sub_tile_pixels
+
+    assert sub_tile_pixels(10240, 3000, platform="cpu") == 12 * 2**20 // (8 * 3000) == 524
+    assert sub_tile_pixels(81920, 35, platform="cpu") == 2048
+    assert sub_tile_pixels(2000, 35, platform="cpu") == 500
+    assert sub_tile_pixels(81920, 35, platform="gpu") == sub_tile_pixels(81920, 3000, platform="cuda") == 81920
 
 
 def test_polish_converges_in_few_newton_steps_and_never_reports_a_maximum_as_converged():
