@@ -372,7 +372,7 @@ def reconstruct_array(frames, frequencies_hz, options: ReconstructOptions | None
 
 
 def sub_tile_pixels(num_pixels: int, num_frames: int, budget_bytes: int = 12 * 2**20, min_pieces: int = 4,
-                    max_pixels: int = 2048, platform: str | None = None) -> int:
+                    max_pixels: int = 2048, platform: str | None = None, device_budget_bytes: int = 256 * 2**20) -> int:
     """Pixels per dispatched sub-tile on `platform` (default: JAX's default backend).
 
     CPU: the uint16 frames of a sub-tile (4·N·2 bytes a pixel) fit in ~12 MiB, so its I/Q,
@@ -386,9 +386,11 @@ def sub_tile_pixels(num_pixels: int, num_frames: int, budget_bytes: int = 12 * 2
     GPU (any other platform): the whole tile, one launch sequence — its pixels run in
     parallel, and per-dispatch overhead dominates small pieces (measured on an H100, 10 Hz
     mode: `ml` 133 ms per depth map in 2048-px pieces, 23 ms as one; full 320×256×3000
-    capture from its file, `ml` 1.8 s in CPU-sized sub-tiles, 0.93 s in whole tiles)."""
+    capture from its file, `ml` 1.8 s in CPU-sized sub-tiles, 0.93 s in whole tiles) — up to
+    `device_budget_bytes` of frames a piece (a 32-row tile of 3000 frames is 245 MB; its
+    float intermediates take several times that on the device)."""
     if (platform or jax.default_backend()) != "cpu":
-        return int(num_pixels)
+        return int(max(1, min(num_pixels, device_budget_bytes // (8 * max(1, num_frames)))))
     by_memory = budget_bytes // (8 * max(1, num_frames))
     return int(max(1, min(num_pixels, by_memory, max_pixels, max(256, -(-num_pixels // min_pieces)))))
 
@@ -435,8 +437,9 @@ def _collect(pending, outputs, h, w, rows, bar):
 
 class _BlockReader:
     """Row tiles of a capture read into two reused buffers. On the CPU a contiguous NumPy
-    array becomes a device array without a copy, so a buffer is reused only after the tile
-    read into it has been gathered (the caller collects tile k before reading tile k + 2).
+    array can become a device array without a copy (JAX aliases 64-byte-aligned buffers), so
+    a buffer is reused only after the tile read into it has been gathered (the caller
+    collects tile k before reading tile k + 2).
     Allocating a fresh ~250 MB array per tile costs more than the read itself on a cold VM
     (first touch of its memory)."""
 
