@@ -102,8 +102,8 @@ def test_design_meets_constraints_and_is_optimal(small_design):
     _, beta0, bias0 = grid_min(np.linspace(0.5, 5.0, 46), np.linspace(0.1, 1.5, 57))  # spacing 0.1, 0.025 rad
     best, _, _ = grid_min(np.linspace(beta0 - 0.2, beta0 + 0.2, 41), np.linspace(bias0 - 0.05, bias0 + 0.05, 41))
     # the margin's penalty is soft (the optimum sits ~0.3 % inside it), so it may beat the
-    # grid slightly; measured ratio 1.0001 (the old test's check against the hard limit on
-    # the coarse grid alone passed at 1.0095 on a CPU and failed above 1.01 on a GPU)
+    # grid slightly; measured ratio 1.0001. (Checked against the hard limit on the coarse grid
+    # alone, the ratio was 1.0095 on a CPU, against a 1.01 bound, and the test failed on a GPU.)
     assert best * 0.99 <= result.crlb_m <= best * 1.002
 
 
