@@ -137,10 +137,6 @@ class UniformModel(eqx.Module):
         rates = (rate_a, 4 * math.pi * self.start_hz / C, self.num_frames * rate_a)
         return tuple((xp.cos(k * delta_m), xp.sin(k * delta_m)) for k in rates)
 
-    def tone_parts(self, depth_m, tables: WindowTables, max_order: int | None = None):
-        """`tone_from_phasors` at a depth."""
-        return self.tone_from_phasors(self.phasors(depth_m), tables, max_order)
-
     def tone_from_phasors(self, phasors: Phasors, tables: WindowTables, max_order: int | None = None):
         """Real and imaginary parts (each (W,)) of the DFT over the window of
         Σ_{n≥1} 2 w_n cos(2π n f_m τ) (unit amplitude A), from the depth's `phasors`.
@@ -183,8 +179,8 @@ class UniformModel(eqx.Module):
         return c * acc_re - s * acc_im + on_re, s * acc_re + c * acc_im + on_im
 
     def tone_column(self, depth_m, tables: WindowTables, max_order: int | None = None) -> Complex[Array, " W"]:
-        """`tone_parts` as one complex array."""
-        re, im = self.tone_parts(depth_m, tables, max_order)
+        """`tone_from_phasors` at a depth, as one complex array."""
+        re, im = self.tone_from_phasors(self.phasors(depth_m), tables, max_order)
         return re + 1j * im
 
     def dc_column(self, tables: WindowTables) -> Float[Array, " W"]:
@@ -197,14 +193,6 @@ def _bin_weights(tables: WindowTables, n: int) -> Float[Array, " W"]:
     variance per component, so they get 1/√2."""
     edge = (tables.bins == 0) | (tables.bins == n / 2)
     return jnp.where(edge, 1 / math.sqrt(2), 1.0)
-
-
-def _project(design, y):
-    """Least-squares (c, A) for a 2-column real design (explicit 2×2 normal equations,
-    ridge-stabilised so a vanishing tone column gives A = 0, not NaN)."""
-    a, b = design[:, 0], design[:, 1]
-    coef = _solve_normal(a @ a, a @ b, b @ b, a @ y, b @ y)
-    return coef, y - design @ coef
 
 
 def _solve_normal(g00, g01, g11, r0, r1):

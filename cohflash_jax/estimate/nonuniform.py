@@ -17,7 +17,8 @@ from jaxtyping import Array, Float
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from .coarse import first_argmax
-from .ml import MAX_VARIANCE_INFLATION, FitResult, descended, polish_depth, tone_cancels_offset, variance_inflation
+from .ml import (MAX_VARIANCE_INFLATION, FitResult, _solve_normal, descended, polish_depth, tone_cancels_offset,
+                 variance_inflation)
 
 
 def depth_grid(frequencies_hz: np.ndarray, depth_window_m: tuple[float, float], points_per_envelope: int = 4) -> np.ndarray:
@@ -48,13 +49,19 @@ def periodogram_coarse(r: Float[Array, "N P"], frequencies_hz: Float[Array, " N"
     return depths_m[k] + jnp.clip(delta, -0.5, 0.5) * step, 2 * jnp.sqrt(b) / n
 
 
+def _project(design, y):
+    """Least-squares (c, A) for a 2-column real design (explicit 2×2 normal equations,
+    ridge-stabilised so a vanishing tone column gives A = 0, not NaN)."""
+    a, b = design[:, 0], design[:, 1]
+    coef = _solve_normal(a @ a, a @ b, b @ b, a @ y, b @ y)
+    return coef, y - design @ coef
+
+
 def refine_time_domain(r: Float[Array, " N"], frequencies_hz: Float[Array, " N"], weights: Float[Array, " K"],
                        coarse_depth_m, noise_var, *, system_delay_s: float, grid_half_width_m: float,
                        grid_points: int, max_steps: int) -> FitResult:
     """ML depth of one pixel over all frames: r[m] = c + A·Σ_{n≥1} 2 w_n cos(2π n f_m τ), with
     (c, A) projected out, a basin grid, then `polish_depth` on the depth offset (mm)."""
-    from .ml import _project
-
     f = frequencies_hz.astype(jnp.float64)
     y = r.astype(jnp.float64)
     scale = jnp.maximum(jnp.std(y), 1e-30)
