@@ -5,6 +5,8 @@ a fresh process including compilation, warm = a second call), pixels per second 
 memory; and two references over the same I/Q data: a plain NumPy pass (np.fft.rfft +
 argmax) and a bare jitted JAX pass (jnp.fft.rfft + argmax). Also the paper's 10 Hz mode
 (35 frames, full frame) per depth map after compilation. Printed, never asserted.
+Runs in rounds of (references, dft, ml), each a fresh process, and takes the speed ratios
+within a round before their median: this VM's speed drifts by tens of per cent over minutes.
 
     python benchmarks/bench_reconstruct.py [--capture FILE] [--repeats 3]
 """
@@ -131,22 +133,31 @@ def main():
         subprocess.run([sys.executable, "-m", "cohflash_jax.cli", "simulate", "traffic", "--out", capture,
                         "--effects", "shot_noise,read_noise,quantization,sidebands", "--quiet"], check=True)
     pixels = 256 * 320
-    ref = run_child("references", capture)
-    print(f"JAX device: {ref['device']}")
-    print(f"references over the same I data: read+I/Q {ref['read_and_iq_s']:.2f} s; NumPy rfft+argmax "
-          f"{ref['numpy_s']:.2f} s; bare JAX rfft+argmax {ref['jax_s']:.3f} s from host memory "
-          f"({ref['jax_resident_s']:.3f} s on data already on the device)")
+    # rounds of (references, dft, ml), each in a fresh process: this VM's speed drifts by tens
+    # of per cent over minutes, so the ratios are taken within a round, then their median
+    rounds = []
+    for _ in range(args.repeats):
+        ref = run_child("references", capture)
+        rounds.append((ref, {m: run_child("reconstruct", capture, m, str(folder / f"depth-{m}.h5"))
+                             for m in ("dft", "ml")}))
+    med = lambda values: statistics.median(list(values))
+    print(f"JAX device: {rounds[0][0]['device']}; {args.repeats} rounds, medians")
+    print(f"references over the same I data: read+I/Q {med(r['read_and_iq_s'] for r, _ in rounds):.2f} s; "
+          f"NumPy rfft+argmax {med(r['numpy_s'] for r, _ in rounds):.2f} s; bare JAX rfft+argmax "
+          f"{med(r['jax_s'] for r, _ in rounds):.3f} s from host memory "
+          f"({med(r['jax_resident_s'] for r, _ in rounds):.3f} s on data already on the device)")
     for method in ("dft", "ml"):
-        runs = [run_child("reconstruct", capture, method, str(folder / f"depth-{method}.h5"))
-                for _ in range(args.repeats)]
-        warm = statistics.median(r["warm"] for r in runs)
-        cold = statistics.median(r["cold"] for r in runs)
-        rss = statistics.median(r["peak_rss_gb"] for r in runs)
+        warm = med(runs[method]["warm"] for _, runs in rounds)
+        cold = med(runs[method]["cold"] for _, runs in rounds)
+        rss = med(runs[method]["peak_rss_gb"] for _, runs in rounds)
+        vs_numpy = [r["numpy_s"] / runs[method]["warm"] for r, runs in rounds]
+        vs_jax = med(runs[method]["warm"] / r["jax_s"] for r, runs in rounds)
+        vs_resident = med(runs[method]["warm"] / r["jax_resident_s"] for r, runs in rounds)
         print(f"{method:4s} end to end (file in, depth file out): warm median {warm:.2f} s "
               f"({pixels / warm:,.0f} px/s), cold {cold:.2f} s incl. compilation; peak RSS {rss:.2f} GB; "
-              f"{runs[0]['valid']:.1%} valid; vs NumPy pass {ref['numpy_s'] / warm:.2f}× faster, "
-              f"vs bare JAX pass {warm / ref['jax_s']:.2f}× slower ({warm / ref['jax_resident_s']:.2f}× vs its "
-              f"device-resident time)")
+              f"{rounds[0][1][method]['valid']:.1%} valid; vs NumPy pass {med(vs_numpy):.2f}× faster "
+              f"(rounds: {', '.join(f'{v:.2f}' for v in vs_numpy)}), vs bare JAX pass {vs_jax:.2f}× slower "
+              f"({vs_resident:.2f}× vs its device-resident time)")
     ten = run_child("ten_hz")
     for method in ("dft", "ml"):
         print(f"10 Hz mode (35 frames over 0.17–6 GHz, 10× probe power, 256×320, {method}) after compilation: "

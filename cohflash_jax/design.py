@@ -34,14 +34,12 @@ import optimistix as optx
 from tqdm.auto import tqdm
 
 from .constants import SPEED_OF_LIGHT_M_PER_S as C
-from .effects import EffectSettings
 from .fileio import atomic_path
-from .fisher import crlb_from_fisher, port_variance_e2
+from .fisher import crlb_from_fisher, depth_fisher
 from .instrument import Instrument
 from .modulator import MZM, mean_transmission
 from .radiometry import LinkBudget
 from .sensor import Sensor
-from .simulate import Returns, expected_port_electrons
 from .sweep import FrequencySweep
 
 NOISE = ("shot_noise", "dark_current", "read_noise", "quantization")
@@ -121,27 +119,6 @@ def _instrument(probe_power_w, exposure_s, modulation_index, bias_rad) -> Instru
                       sensor=Sensor(exposure_s=exposure_s), link=LinkBudget(probe_power_w=probe_power_w))
 
 
-def _fisher_masked(inst: Instrument, frequencies, mask, distance_m, reflectance, effects, frequency_only,
-                   range_falloff=True):
-    """Fisher information over the frames where mask = 1 (one compiled shape for any N)."""
-    settings = EffectSettings()
-    echo_e = inst.sensor.electrons(inst.link.echo_power_w(distance_m, reflectance, range_falloff))
-    idx = jnp.arange(frequencies.shape[0], dtype=jnp.float64)
-
-    def ports(theta):
-        shift = theta[3] if frequency_only else 0.0
-        delay = 2.0 * theta[0] / C
-        amp = jnp.sqrt(echo_e) * jnp.exp(theta[1] + 1j * theta[2])
-        returns = Returns(jnp.reshape(delay, (1, 1, 1)), jnp.reshape(amp, (1, 1, 1)), jnp.reshape(echo_e, (1, 1)))
-        return expected_port_electrons(inst, settings, returns, frequencies + shift, idx, None, effects)[..., 0]
-
-    theta0 = jnp.asarray([distance_m, 0.0, 0.3] + ([0.0] if frequency_only else []), jnp.float64)
-    var = jax.lax.stop_gradient(port_variance_e2(inst, ports(theta0), effects))
-    jac = jax.jacfwd(ports)(theta0)
-    w = jac * jnp.sqrt(mask / var)[..., None]
-    return jnp.einsum("kni,knj->ij", w, w)
-
-
 @functools.partial(jax.jit, static_argnames="range_falloff")
 def _crlb_points(start_hz, step_hz, distance_m, power_w, exposure_s, beta, bias, reflectance, mask,
                  range_falloff=True):
@@ -151,8 +128,9 @@ def _crlb_points(start_hz, step_hz, distance_m, power_w, exposure_s, beta, bias,
     def one(s0, df, d, p, te, b, th, rho):
         inst = _instrument(p, te, b, th)
         f = s0 + df * m
-        locked = crlb_from_fisher(_fisher_masked(inst, f, mask, d, rho, NOISE, False, range_falloff))
-        freq_only = crlb_from_fisher(_fisher_masked(inst, f, mask, d, rho, NOISE, True, range_falloff))
+        locked = crlb_from_fisher(depth_fisher(inst, f, d, rho, NOISE, range_falloff=range_falloff, frame_weights=mask))
+        freq_only = crlb_from_fisher(depth_fisher(inst, f, d, rho, NOISE, frequency_only=True, range_falloff=range_falloff,
+                                                  frame_weights=mask))
         return locked, freq_only, inst.link.echo_power_w(d, rho, range_falloff)
 
     return jax.vmap(one)(start_hz, step_hz, distance_m, power_w, exposure_s, beta, bias, reflectance)
@@ -440,8 +418,9 @@ def _objective(z, args):
     f = _schedule(v, n, n_cap)
     mask = (jnp.arange(n_cap) < n).astype(jnp.float64)
     inst = _instrument(v["probe_power_w"], v["exposure_s"], v["modulation_index"], v["bias_rad"])
-    locked = crlb_from_fisher(_fisher_masked(inst, f, mask, problem.distance_m, problem.reflectance, NOISE, False))
-    coarse = crlb_from_fisher(_fisher_masked(inst, f, mask, problem.distance_m, problem.reflectance, NOISE, True))
+    locked = crlb_from_fisher(depth_fisher(inst, f, problem.distance_m, problem.reflectance, NOISE, frame_weights=mask))
+    coarse = crlb_from_fisher(depth_fisher(inst, f, problem.distance_m, problem.reflectance, NOISE, frequency_only=True,
+                                             frame_weights=mask))
     mean_f = jnp.sum(f * mask) / n
     ripple_margin = RIPPLE_SIGMAS * coarse / (C / (4 * mean_f))  # must stay < 1
     steps = jnp.where(mask[1:] > 0, jnp.diff(f), 0.0)
@@ -522,8 +501,9 @@ def _evaluate(z, n, n_cap, problem):
     f = _schedule(v, n, n_cap)
     mask = (jnp.arange(n_cap) < n).astype(jnp.float64)
     inst = _instrument(v["probe_power_w"], v["exposure_s"], v["modulation_index"], v["bias_rad"])
-    locked = float(crlb_from_fisher(_fisher_masked(inst, f, mask, problem.distance_m, problem.reflectance, NOISE, False)))
-    coarse = float(crlb_from_fisher(_fisher_masked(inst, f, mask, problem.distance_m, problem.reflectance, NOISE, True)))
+    locked = float(crlb_from_fisher(depth_fisher(inst, f, problem.distance_m, problem.reflectance, NOISE, frame_weights=mask)))
+    coarse = float(crlb_from_fisher(depth_fisher(inst, f, problem.distance_m, problem.reflectance, NOISE, frequency_only=True,
+                                             frame_weights=mask)))
     v = {k: float(val) for k, val in v.items()}
     v["mean_term_snr"] = float(mean_term_snr(inst, f, mask, problem.distance_m, problem.reflectance))
     return locked, coarse, v, np.asarray(f)[:n]

@@ -52,9 +52,10 @@ def port_variance_e2(instrument: Instrument, mean_e, effects) -> Array:
 def depth_fisher(instrument: Instrument, frequencies_hz: Float[Array, " N"], distance_m, reflectance,
                  effects=("shot_noise", "dark_current", "read_noise", "quantization"),
                  settings: EffectSettings | None = None, frequency_only: bool = False,
-                 range_falloff: bool = True) -> Float[Array, "K K"]:
+                 range_falloff: bool = True, frame_weights: Float[Array, " N"] | None = None) -> Float[Array, "K K"]:
     """Fisher information of (depth m, log amplitude, carrier phase rad[, δf Hz]) for one pixel
-    of a target at `distance_m` with `reflectance`, per capture (all frames)."""
+    of a target at `distance_m` with `reflectance`, per capture: all frames, or each frame
+    weighted by `frame_weights` (a 0/1 mask gives sweeps of any N one compiled shape)."""
     settings = settings or EffectSettings()
     effects = tuple(effects)
     f = jnp.asarray(frequencies_hz, jnp.float64)
@@ -71,6 +72,8 @@ def depth_fisher(instrument: Instrument, frequencies_hz: Float[Array, " N"], dis
     var = jax.lax.stop_gradient(port_variance_e2(instrument, mean, effects))
     jac = jax.jacfwd(ports)(theta0)  # (4, N, K)
     w = jac / jnp.sqrt(var)[..., None]
+    if frame_weights is not None:
+        w = w * jnp.sqrt(frame_weights)[:, None]
     return jnp.einsum("kni,knj->ij", w, w)
 
 

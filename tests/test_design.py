@@ -89,7 +89,8 @@ def test_design_meets_constraints_and_is_optimal(small_design):
     @jax.vmap
     def bound(beta, bias):
         inst = design._instrument(v["probe_power_w"], v["exposure_s"], beta, bias)
-        fisher = design._fisher_masked(inst, fj, mask, problem.distance_m, problem.reflectance, design.NOISE, False)
+        fisher = cf.fisher.depth_fisher(inst, fj, problem.distance_m, problem.reflectance, design.NOISE,
+                                        frame_weights=mask)
         snr = design.mean_term_snr(inst, fj, mask, problem.distance_m, problem.reflectance)
         return jnp.where(snr >= snr_floor, cf.fisher.crlb_from_fisher(fisher), jnp.inf)
 
