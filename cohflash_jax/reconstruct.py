@@ -449,8 +449,9 @@ def dispatch_tile(cfg: TileConfig, frames, dark=None, data_status=None, gain=Non
         if arr is None:
             return None
         part = arr[..., k * sub:(k + 1) * sub]
-        if isinstance(part, np.ndarray):
-            return jax.device_put(aligned_copy(part, sub))
+        if isinstance(part, np.ndarray):  # one host copy at most (none for a whole contiguous tile)
+            whole = part.shape[-1] == sub and part.flags.c_contiguous
+            return jax.device_put(part if whole else aligned_copy(part, sub))
         if part.shape[-1] < sub:
             part = jnp.pad(part, [(0, 0)] * (part.ndim - 1) + [(0, sub - part.shape[-1])])
         return part
