@@ -2,8 +2,7 @@
 
 A capture is read in row tiles (the file's chunk rows) into two reused buffers; each tile is
 cut into sub-tiles of a few hundred pixels (`sub_tile_pixels`) whose frames fit in cache,
-dispatched asynchronously so they run concurrently on the CPU's cores (on a GPU a tile is
-one piece). Per sub-tile (one
+dispatched asynchronously (on a GPU a tile is one piece). Per sub-tile (one
 compiled function per sub-tile shape): data checks → I/Q (nominal or calibrated
 hybrid) → carrier alignment (static or tracked) → one unwindowed unitary rFFT over the
 frame index; its periodic-Hann spectrum (a 3-tap convolution of the same bins) gives the
@@ -398,16 +397,20 @@ def reconstruct_array(frames, frequencies_hz, options: ReconstructOptions | None
 
 
 def sub_tile_pixels(num_pixels: int, num_frames: int, budget_bytes: int = 12 * 2**20, min_pieces: int = 4,
-                    max_pixels: int = 2048, platform: str | None = None, device_budget_bytes: int = 256 * 2**20) -> int:
+                    max_pixels: int = 8192, platform: str | None = None, device_budget_bytes: int = 256 * 2**20) -> int:
     """Pixels per dispatched sub-tile on `platform` (default: JAX's default backend).
 
     CPU: the uint16 frames of a sub-tile (4·N·2 bytes a pixel) fit in ~12 MiB, so its I/Q,
-    moment and FFT passes run from cache, and a tile gives at least `min_pieces` sub-tiles,
-    whose dispatches run concurrently on the CPU's cores (measured on 2 cores, N = 3000:
-    10240-px tiles 0.87 s, 640-px sub-tiles 0.38 s per 10240 px for `dft`). At most
-    `max_pixels`: short sweeps would otherwise give a few huge pieces, and a vmapped ML fit
-    runs as long as the slowest of its pixels (measured, 10 Hz mode, 35 frames, 256×320:
-    `ml` 1.87 s per depth map in 20480-px pieces, 0.99 s in 2048).
+    moment and FFT passes run from cache (measured on 2 cores, N = 3000: 10240-px tiles 0.87 s,
+    640-px sub-tiles 0.38 s per 10240 px for `dft`), and a tile gives at least `min_pieces`
+    sub-tiles, dispatched asynchronously. (On our 2-vCPU VM the gain is the cache's, not
+    concurrency's: the same sub-tiles each run to completion before the next took the same
+    time, `dft` 1.54–1.62 s against 1.60–1.69 s for the full capture.) At most
+    `max_pixels`: short sweeps would otherwise give a few huge pieces (measured, 10 Hz mode, 35
+    frames, 256×320, with the two-pass polish of `refine_ml_uniform`: `dft` 65 / 46 / 39 / 35 ms
+    per depth map in 1024 / 2048 / 4096 / 8192-px pieces, `ml` 603 / 545 / 545 / 534 ms; before
+    that polish a vmapped fit ran as long as the slowest of its pixels, and 20480-px pieces
+    took `ml` 1.87 s against 0.99 s in 2048).
 
     GPU (any other platform): the whole tile, one launch sequence — its pixels run in
     parallel, and per-dispatch overhead dominates small pieces (measured on an H100, 10 Hz

@@ -302,12 +302,13 @@ def test_sub_tiles_give_the_same_pixels_as_one_tile(paper_instrument, planar_mon
 
 
 def test_sub_tile_size_follows_the_platform():
-    """CPU: cache-sized sub-tiles of at most 2048 px, at least 4 a tile; a GPU takes the tile
+    """CPU: cache-sized sub-tiles of at most 8192 px, at least 4 a tile; a GPU takes the tile
     whole up to 256 MiB of frames."""
     from cohflash_jax.reconstruct import sub_tile_pixels
 
     assert sub_tile_pixels(10240, 3000, platform="cpu") == 12 * 2**20 // (8 * 3000) == 524
-    assert sub_tile_pixels(81920, 35, platform="cpu") == 2048
+    assert sub_tile_pixels(81920, 35, platform="cpu") == 8192
+    assert sub_tile_pixels(10240, 35, platform="cpu") == 2560
     assert sub_tile_pixels(2000, 35, platform="cpu") == 500
     assert sub_tile_pixels(81920, 35, platform="gpu") == sub_tile_pixels(10240, 3000, platform="cuda") * 8 == 81920
     assert sub_tile_pixels(81920, 3000, platform="gpu") == 256 * 2**20 // (8 * 3000) == 11184
