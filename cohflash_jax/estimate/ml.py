@@ -420,9 +420,10 @@ def refine_ml_uniform(model: UniformModel, windows, k0, coarse_depth_m, noise_va
     windows (unitary bins k0..k0+W−1): `prepare_pixel`, the polish, `finish_pixel`.
 
     The polish (`polish_depth`, up to `max_steps` Newton steps a pixel) runs in two passes:
-    every pixel and candidate for `first_pass_steps` (default `FIRST_PASS_STEPS`), then those that hit that limit resume
-    where they stopped, `STRAGGLER_GROUP` at a time, for the remaining steps. A pixel's result
-    depends on its own data only, never on its batch."""
+    every pixel and candidate for `first_pass_steps` (default `FIRST_PASS_STEPS`), then those
+    that hit that limit resume where they stopped, `STRAGGLER_GROUP` at a time, for the
+    remaining steps. A pixel's result depends on its own data only, never on its batch. The
+    straggler pass is a `lax.while_loop`, which reverse-mode differentiation cannot pass through."""
     prep = lambda w, k, d, v: prepare_pixel(model, w, k, d, v, grid_half_width_m=grid_half_width_m,
                                             grid_points=grid_points, candidates=candidates,
                                             grid_max_order=grid_max_order)
@@ -453,9 +454,8 @@ def refine_ml_uniform(model: UniformModel, windows, k0, coarse_depth_m, noise_va
             return (put(values, v), put(solved, ok), put(num_steps, num_steps[idx] + steps),
                     pending.at[slots].set(False, mode="drop"))
 
-        pending = at_limit
         values, solved, num_steps, _ = jax.lax.while_loop(lambda state: jnp.any(state[3]), resume,
-                                                          (values, solved, num_steps, pending))
+                                                          (values, solved, num_steps, at_limit))
     shape = (num_pixels, candidates)
     fin = lambda p, d, v, x, ok, steps: finish_pixel(model, p, d, v, x, ok, steps)
     return jax.vmap(fin)(pix, coarse_depth_m, noise_var, values.reshape(shape), solved.reshape(shape),
