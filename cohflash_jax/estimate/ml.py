@@ -446,11 +446,11 @@ def refine_ml_uniform(model: UniformModel, windows, k0, coarse_depth_m, noise_va
 
         def resume(state):
             values, solved, num_steps, pending = state
-            slots = jnp.nonzero(pending, size=group, fill_value=total)[0]  # `total`: an empty slot
-            live = slots < total
+            # `total` marks an empty slot: its polish runs on a clamped index, its writes are dropped
+            slots = jnp.nonzero(pending, size=group, fill_value=total)[0]
             idx = jnp.minimum(slots, total - 1)
             v, ok, steps, _ = jax.vmap(lambda i, x: polish(i, x, max_steps - first))(owner[idx], values[idx])
-            put = lambda arr, new: arr.at[slots].set(jnp.where(live, new, arr[idx]), mode="drop")
+            put = lambda arr, new: arr.at[slots].set(new, mode="drop")
             return (put(values, v), put(solved, ok), put(num_steps, num_steps[idx] + steps),
                     pending.at[slots].set(False, mode="drop"))
 
