@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from cohflash_jax.design import PARAMETERS
+from cohflash_jax.fileio import require_output_folders
 from cohflash_jax.reconstruct import DEFAULT_SNR_THRESHOLD_DB
 from cohflash_jax.runtime import enable_compilation_cache
 
@@ -211,6 +212,8 @@ def _roi(text: str) -> list[tuple[int, int]]:
 
 
 def cmd_uncertainty(args) -> int:
+    import json
+
     from cohflash_jax.capture import Capture
     from cohflash_jax.fileio import atomic_path
     from cohflash_jax.reconstruct import ReconstructOptions
@@ -225,15 +228,19 @@ def cmd_uncertainty(args) -> int:
         if args.chains:
             chains = Path(args.out).with_suffix(".chains.h5")
             with atomic_path(chains) as tmp:
-                results = run_pixels(cap, pixels, options, seed=args.seed, max_steps=args.max_steps,
-                                     chains_path=tmp, progress=not args.quiet)
+                results, skipped = run_pixels(cap, pixels, options, seed=args.seed, max_steps=args.max_steps,
+                                              chains_path=tmp, progress=not args.quiet)
         else:
-            results = run_pixels(cap, pixels, options, seed=args.seed, max_steps=args.max_steps,
-                                 progress=not args.quiet)
+            results, skipped = run_pixels(cap, pixels, options, seed=args.seed, max_steps=args.max_steps,
+                                          progress=not args.quiet)
     seconds = time.perf_counter() - t0
     write_posteriors(args.out, results, {"capture": str(Path(args.capture).resolve()), "seconds": seconds,
-                                         "seconds_per_pixel": seconds / len(pixels)})
-    print(f"wrote {args.out}: {len(results)} pixel(s), {seconds / len(pixels):.2f} s per pixel")
+                                         "seconds_per_pixel": seconds / len(results),
+                                         "skipped_pixels": json.dumps([[r, c, why] for r, c, why in skipped])})
+    print(f"wrote {args.out}: {len(results)} pixel(s), {seconds / len(results):.2f} s per pixel")
+    if skipped:
+        print(f"  skipped {len(skipped)} pixel(s) with unusable data (no posterior): "
+              + ", ".join(f"({r},{c}) {why}" for r, c, why in skipped[:20]) + (" …" if len(skipped) > 20 else ""))
     for r, c, p in results[:20]:
         print(f"  ({r},{c}): median {p.median_m:.5f} m, 68 % [{(p.interval68_m[0] - p.median_m) * 1e3:+.3f}, "
               f"{(p.interval68_m[1] - p.median_m) * 1e3:+.3f}] mm, 95 % [{(p.interval95_m[0] - p.median_m) * 1e3:+.3f}, "
@@ -515,12 +522,18 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+# arguments that name files a command writes
+OUTPUT_ARGUMENTS = ("out", "png", "ply", "tiff", "plot", "report")
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if getattr(args, "snr_threshold_db", 0) is None:
         args.snr_threshold_db = DEFAULT_SNR_THRESHOLD_DB
     enable_compilation_cache()
     try:
+        # every output file's folder must exist before any work starts (demo's --out is a folder it makes)
+        require_output_folders(*(getattr(args, name, None) for name in OUTPUT_ARGUMENTS if args.command != "demo"))
         return args.func(args)
     except BrokenPipeError:  # e.g. `cohflash scenes | head` (before OSError, of which it is one)
         sys.stderr.close()

@@ -8,6 +8,13 @@ import os
 from pathlib import Path
 
 
+def require_output_folders(*paths) -> None:
+    """FileNotFoundError naming the first output path (None skipped) whose folder does not exist."""
+    for path in paths:
+        if path is not None and not Path(path).parent.exists():
+            raise FileNotFoundError(f"output folder does not exist: {Path(path).parent}")
+
+
 @contextlib.contextmanager
 def atomic_path(path):
     """Yield a temporary path in the target's folder; rename it onto `path` on success.
@@ -15,8 +22,7 @@ def atomic_path(path):
     On any exception the temporary file is removed and an existing `path` is untouched,
     so an interrupted run never leaves a half-written file."""
     path = Path(path)
-    if not path.parent.exists():
-        raise FileNotFoundError(f"output folder does not exist: {path.parent}")
+    require_output_folders(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
         yield tmp
@@ -34,9 +40,11 @@ def read_json(path, what: str, error=ValueError) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"{what} file not found: {path}")
     try:
-        return json.loads(path.read_text())
+        return json.loads(path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as exc:
         raise error(f"{path}: not valid JSON ({exc})") from None
+    except UnicodeDecodeError:
+        raise error(f"{path}: not a {what} JSON file (binary content; an HDF5 file given in its place?)") from None
 
 
 def save_figure(fig, path) -> Path:

@@ -459,6 +459,10 @@ def calibrate_hybrid(capture_path, *, dark_path=None, flat_path=None, known_dist
     Returns {"document": JSON-able dict, "maps": {name: array} (may be empty)}."""
     from .reconstruct import ReconstructOptions, reconstruct_array, reconstruct_capture, modulator_from_attrs
 
+    if known_distance_m is not None and not (math.isfinite(known_distance_m) and known_distance_m > 0):
+        raise ValueError(f"known distance must be a positive number of metres, got {known_distance_m}")
+    if max_pixels < 1 or modulator_pixels < 1:
+        raise ValueError(f"max_pixels and modulator_pixels must be ≥ 1, got {max_pixels} and {modulator_pixels}")
     with Capture(capture_path) as cap:
         n, h, w = cap.shape
         if n < MIN_FRAMES:

@@ -30,7 +30,7 @@ import numpy as np
 
 from .estimate.iq import align_carrier_static, derotate, iq_from_frames
 from .estimate.ml import UniformModel, _bin_weights, window_tables
-from .reconstruct import OK, TileConfig, process_tile
+from .reconstruct import BAD_DATA, DEAD, OK, SATURATED, STATUS, TileConfig, process_tile
 
 PARAMETERS = ("depth_offset_mm", "amplitude", "carrier_phase_rad")
 LABELS = ("depth − ML (mm)", "amplitude A (DN)", "carrier phase δφ (rad)")
@@ -222,9 +222,16 @@ POSTERIOR_FIELDS = ("row", "col", "ml_depth_m", "mean_m", "median_m", "lo68_m", 
                     "crlb_m", "multimodal", "converged", "autocorr_steps", "acceptance", "steps")
 
 
+# pixels whose data cannot carry a posterior: the likelihood's noise model does not hold
+UNUSABLE_DATA = (BAD_DATA, SATURATED, DEAD)
+
+
 def run_pixels(capture, pixels, options, *, seed: int = 0, max_steps: int = 20000, chains_path=None,
                progress: bool = True):
-    """Posteriors of (row, col) pixels of an open capture → list of (row, col, Posterior).
+    """Posteriors of (row, col) pixels of an open capture → (results, skipped): a list of
+    (row, col, Posterior) and one of (row, col, reason) for pixels whose data are unusable
+    (NaN/inf, saturated or dead: `UNUSABLE_DATA`), which are not sampled. Raises ValueError
+    when no pixel is usable.
 
     Frames of each pixel are read on their own (4 × N values), so any set of pixels costs
     what it reads. `chains_path` keeps every chain in emcee's HDF5 backend, one group per pixel."""
@@ -244,9 +251,16 @@ def run_pixels(capture, pixels, options, *, seed: int = 0, max_steps: int = 2000
     ripple = 299_792_458.0 / (2 * float(np.mean(capture.frequencies_hz)))
     frames = np.stack([capture.frames[:, :, r, c] for r, c in pixels], axis=-1)  # (4, N, P)
     data = pixel_data(cfg, jnp.asarray(frames))
+    status = np.asarray(data.status)
+    skipped = [(r, c, STATUS[int(status[p])]) for p, (r, c) in enumerate(pixels) if status[p] in UNUSABLE_DATA]
+    if len(skipped) == len(pixels):
+        raise ValueError("no pixel with usable data: " + ", ".join(f"({r}, {c}) {why}" for r, c, why in skipped[:10])
+                         + (" …" if len(skipped) > 10 else ""))
+    usable = [p for p in range(len(pixels)) if status[p] not in UNUSABLE_DATA]
     rng = np.random.default_rng(seed)
     results = []
-    for p, (r, c) in enumerate(tqdm(pixels, unit="px", desc="posterior", disable=not progress)):
+    for p in tqdm(usable, unit="px", desc="posterior", disable=not progress):
+        r, c = pixels[p]
         d = jax.tree_util.tree_map(lambda x: x[p], data)
         backend = None if chains_path is None else emcee.backends.HDFBackend(str(chains_path), name=f"pixel_{r}_{c}")
         with warnings.catch_warnings():
@@ -254,7 +268,7 @@ def run_pixels(capture, pixels, options, *, seed: int = 0, max_steps: int = 2000
             post = sample_pixel(cfg.model, d, ambiguity_m=cfg.ambiguity_m, bin_depth_m=cfg.bin_depth_m,
                                 ripple_m=ripple, rng=rng, max_steps=max_steps, backend=backend)
         results.append((r, c, post))
-    return results
+    return results, skipped
 
 
 def write_posteriors(path, results, meta: dict):

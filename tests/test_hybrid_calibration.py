@@ -144,6 +144,9 @@ def test_degenerate_inputs_refused(instrument, tmp_path):
         calibrate_hybrid(sat, progress=False)
     assert main(["calibrate", "hybrid", str(tmp_path / "missing.h5"), "--out", str(tmp_path / "x.json")]) == 2
     assert not (tmp_path / "x.json").exists()
+    for distance in (-3.0, 0.0, float("nan")):  # refused before the capture is read
+        with pytest.raises(ValueError, match="positive number of metres"):
+            calibrate_hybrid(sat, known_distance_m=distance, progress=False)
 
 
 def test_dark_and_flat_maps(instrument, tmp_path, calibrations):

@@ -213,6 +213,10 @@ def test_reconstruct_cli_end_to_end(tmp_path, capsys):
     assert main(["reconstruct", str(tmp_path / "none.h5"), "--out", str(tmp_path / "x.h5")]) == 2
     assert "not found" in capsys.readouterr().err
     assert not (tmp_path / "x.h5").exists()
+    # an export into a missing folder is refused before any work, not after depth.h5 is written
+    assert main(["reconstruct", str(cap), "--out", str(tmp_path / "x.h5"), "--ply", str(tmp_path / "no" / "c.ply")]) == 2
+    assert f"output folder does not exist: {tmp_path / 'no'}" in capsys.readouterr().err
+    assert not (tmp_path / "x.h5").exists()
 
 
 def test_calibration_file_applies_the_true_hybrid(tmp_path, paper_instrument, noise_effects):

@@ -89,6 +89,9 @@ def test_cli_writes_registration_and_report_that_round_trip(tmp_path, views, cap
     reg = load_registration(out)
     np.testing.assert_allclose(reg.cameras[2].camera_matrix, np.array(data["cameras"][2]["camera_matrix"]))
     assert report.read_bytes()[:4] == b"\x89PNG"
+    # a binary file in the JSON's place (the report PNG, an HDF5 capture) is named as such
+    with pytest.raises(RegistrationError, match=f"{report.name}: not a registration JSON file"):
+        load_registration(report)
 
 
 def test_bad_inputs_name_the_problem(tmp_path, views):

@@ -1,5 +1,7 @@
 """emcee posteriors: coverage at high SNR, multimodality near the threshold, zero echo."""
 
+import json
+
 import h5py
 import jax
 import numpy as np
@@ -88,3 +90,14 @@ def test_zero_echo_ends_with_a_clear_result(paper_instrument, tmp_path, capsys):
     assert (tmp_path / "p_0_0.png").read_bytes()[:4] == b"\x89PNG"
     assert main(["uncertainty", str(cap), "--pixel", "5,5", "--out", str(out)]) == 2
     assert main(["uncertainty", str(cap), "--out", str(out)]) == 2
+    # a dead pixel (constant frames) gets no posterior: it is skipped and named, the rest sampled
+    with h5py.File(cap, "r+") as f:
+        f["frames"][:, :, 1, 0] = 200
+    rc = main(["uncertainty", str(cap), "--pixel", "0,0", "--pixel", "1,0", "--out", str(out), "--max-steps", "2000",
+               "--quiet"])
+    assert rc == 0 and "skipped 1 pixel(s) with unusable data (no posterior): (1,0) dead" in capsys.readouterr().out
+    with h5py.File(out) as f:
+        assert list(f["row"][()]) == [0] and json.loads(f.attrs["skipped_pixels"]) == [[1, 0, "dead (constant)"]]
+    # nothing usable: a clear error (the pixel twice keeps the compiled two-pixel shape)
+    assert main(["uncertainty", str(cap), "--pixel", "1,0", "--pixel", "1,0", "--out", str(out)]) == 2
+    assert "no pixel with usable data: (1, 0) dead" in capsys.readouterr().err
