@@ -303,6 +303,14 @@ class ReconstructOptions:
             raise ValueError("tile_rows must be ≥ 1")
         if not self.min_depth_m >= 0:
             raise ValueError(f"min_depth_m must be ≥ 0, got {self.min_depth_m}")
+        # NaN compares false: a NaN threshold would pass every pixel, a NaN χ² limit none
+        if not math.isfinite(self.snr_threshold_db):
+            raise ValueError(f"snr_threshold_db must be a finite number of dB, got {self.snr_threshold_db}")
+        if not (self.max_fit_chi2 > 0):
+            raise ValueError(f"max_fit_chi2 must be positive, got {self.max_fit_chi2}")
+        if self.window_bins < 3 or self.max_steps < 1 or self.track_window_frames < 3:
+            raise ValueError(f"window_bins (≥ 3), max_steps (≥ 1) and track_window_frames (≥ 3) out of range: "
+                             f"{self.window_bins}, {self.max_steps}, {self.track_window_frames}")
 
 
 def modulator_from_attrs(attrs: dict) -> MZM:

@@ -149,11 +149,17 @@ class Posterior:
         return lo <= depth_m <= hi
 
 
+def _check_max_steps(max_steps: int):
+    if max_steps < 1:
+        raise ValueError(f"max_steps must be ≥ 1 (emcee steps a pixel), got {max_steps}")
+
+
 def sample_pixel(model: UniformModel, data: PixelData, *, ambiguity_m: float, bin_depth_m: float, ripple_m: float,
                  rng: np.random.Generator, nwalkers: int = 32, batch: int = 500, max_steps: int = 20000,
                  backend=None) -> Posterior:
     """emcee posterior of one pixel. Runs until the chain is ≥ 50 integrated autocorrelation
     times long and τ has settled (emcee's guidance), else warns at `max_steps`."""
+    _check_max_steps(max_steps)
     half_range = 2 * bin_depth_m
     log_prob = make_log_prob(model, data, depth_half_range_m=half_range, ambiguity_m=ambiguity_m,
                              ripple_m=ripple_m)
@@ -240,6 +246,7 @@ def run_pixels(capture, pixels, options, *, seed: int = 0, max_steps: int = 2000
     from .hybrid import Hybrid
     from .reconstruct import build_config, modulator_from_attrs
 
+    _check_max_steps(max_steps)
     n, h, w = capture.shape
     for r, c in pixels:
         if not (0 <= r < h and 0 <= c < w):

@@ -305,6 +305,16 @@ def test_sub_tiles_give_the_same_pixels_as_one_tile(paper_instrument, planar_mon
         np.testing.assert_allclose(parts[k], whole[k], rtol=1e-5, atol=1e-9, err_msg=k)
 
 
+def test_options_out_of_range_are_refused():
+    """A NaN SNR threshold would pass every pixel (NaN compares false): refused, like the rest."""
+    for bad, match in (({"snr_threshold_db": float("nan")}, "snr_threshold_db"), ({"max_fit_chi2": 0.0}, "max_fit_chi2"),
+                       ({"max_fit_chi2": float("nan")}, "max_fit_chi2"), ({"method": "fft"}, "unknown method"),
+                       ({"window_bins": 2}, "window_bins"), ({"max_steps": 0}, "max_steps"),
+                       ({"min_depth_m": -1.0}, "min_depth_m"), ({"tile_rows": 0}, "tile_rows")):
+        with pytest.raises(ValueError, match=match):
+            ReconstructOptions(**bad)
+
+
 def test_sub_tile_size_follows_the_platform():
     """CPU: cache-sized sub-tiles of at most 8192 px, at least 4 a tile; a GPU takes the tile
     whole up to 256 MiB of frames."""

@@ -90,6 +90,7 @@ def test_zero_echo_ends_with_a_clear_result(paper_instrument, tmp_path, capsys):
     assert (tmp_path / "p_0_0.png").read_bytes()[:4] == b"\x89PNG"
     assert main(["uncertainty", str(cap), "--pixel", "5,5", "--out", str(out)]) == 2
     assert main(["uncertainty", str(cap), "--out", str(out)]) == 2
+    assert main(["uncertainty", str(cap), "--pixel", "0,0", "--out", str(out), "--max-steps", "0"]) == 2
     # a dead pixel (constant frames) gets no posterior: it is skipped and named, the rest sampled
     with h5py.File(cap, "r+") as f:
         f["frames"][:, :, 1, 0] = 200
