@@ -412,7 +412,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--effects", default=None, help="comma-separated effects (default: the scene's own); "
                    "see `cohflash scenes`")
     s.add_argument("--depth-map", help="scene 'file': depth map (.npy in m, or image × --depth-scale-m)")
-    s.add_argument("--reflectance-map", help="scene 'file': reflectance map (.npy in [0,1], or image)")
+    s.add_argument("--reflectance-map", help="scene 'file': reflectance map (.npy in [0,1], or image: "
+                   "value / the dtype's full scale, e.g. /255 for 8-bit)")
     s.add_argument("--depth-scale-m", type=float, default=1.0, help="metres per image unit of --depth-map")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=cmd_simulate)

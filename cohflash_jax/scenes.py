@@ -147,20 +147,30 @@ def from_arrays(depth_m, reflectance=None, name: str = "arrays", effects=_CLEAN)
     return Scene(name, sample, effects, f"user arrays {rows}×{cols}")
 
 
-def _load_map(path: Path) -> np.ndarray:
+def _load_map(path: Path) -> tuple[np.ndarray, float]:
+    """A 2-D map from `.npy` or an image → (float64 values, the full scale of the file's dtype:
+    255 for 8-bit and 65535 for 16-bit images, 1 otherwise)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"scene map not found: {path}")
     if path.suffix.lower() == ".npy":
-        return np.load(path)
-    import cv2
+        try:
+            arr = np.load(path, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as exc:
+            raise ValueError(f"{path}: not a readable .npy array ({exc})") from None
+    else:
+        import cv2
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"could not read image {path} (not an image OpenCV can decode)")
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    return img.astype(np.float64)
+        arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if arr is None:
+            raise ValueError(f"could not read image {path} (not an image OpenCV can decode)")
+        if arr.ndim == 3:
+            arr = cv2.cvtColor(arr, cv2.COLOR_BGR2GRAY if arr.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        raise ValueError(f"{path}: a map must hold real numbers, got dtype {arr.dtype}")
+    full_scale = float(np.iinfo(arr.dtype).max) if np.issubdtype(arr.dtype, np.integer) and path.suffix.lower() != ".npy" \
+        else 1.0
+    return arr.astype(np.float64), full_scale
 
 
 def from_files(depth_path, reflectance_path=None, depth_scale_m: float = 1.0,
@@ -168,13 +178,14 @@ def from_files(depth_path, reflectance_path=None, depth_scale_m: float = 1.0,
     """Scene from files: `.npy` arrays (metres and [0, 1]) or images (e.g. 16-bit PNG).
 
     Image values are multiplied by `depth_scale_m` (e.g. 0.001 for depth in mm) and by
-    `reflectance_scale` (default 1/max of the image's dtype range)."""
-    depth = _load_map(depth_path) * depth_scale_m
+    `reflectance_scale` (default 1/full scale of the image's dtype: 1/255 for 8-bit, 1/65535
+    for 16-bit)."""
+    depth = _load_map(depth_path)[0] * depth_scale_m
     rho = None
     if reflectance_path is not None:
-        rho = _load_map(reflectance_path)
+        rho, full_scale = _load_map(reflectance_path)
         if reflectance_scale is None:
-            reflectance_scale = 1.0 if Path(reflectance_path).suffix.lower() == ".npy" else 1.0 / max(rho.max(), 1.0)
+            reflectance_scale = 1.0 / full_scale
         rho = rho * reflectance_scale
     return from_arrays(depth, rho, name=Path(depth_path).stem, effects=effects)
 

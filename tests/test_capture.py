@@ -161,7 +161,7 @@ def test_scene_from_image_files_and_arrays(tmp_path):
     cv2.imwrite(str(tmp_path / "d.png"), depth_mm)
     cv2.imwrite(str(tmp_path / "r.png"), rho)
     np.save(tmp_path / "d.npy", depth_mm / 1000.0)
-    from_png = cf.from_files(tmp_path / "d.png", tmp_path / "r.png", depth_scale_m=1e-3, reflectance_scale=1 / 255)
+    from_png = cf.from_files(tmp_path / "d.png", tmp_path / "r.png", depth_scale_m=1e-3)  # 8-bit: reflectance /255
     from_npy = cf.from_files(tmp_path / "d.npy")
     d_png, r_png = from_png.render(20, 30)
     d_npy, _ = from_npy.render(20, 30)
@@ -175,3 +175,9 @@ def test_scene_from_image_files_and_arrays(tmp_path):
     (tmp_path / "junk.png").write_bytes(b"not an image")
     with pytest.raises(ValueError, match="could not read image"):
         cf.from_files(tmp_path / "junk.png")
+    (tmp_path / "junk.npy").write_text("not an array")
+    with pytest.raises(ValueError, match="junk.npy: not a readable .npy array"):
+        cf.from_files(tmp_path / "junk.npy")
+    np.save(tmp_path / "words.npy", np.array(["a", "b"]))
+    with pytest.raises(ValueError, match="words.npy: a map must hold real numbers"):
+        cf.from_files(tmp_path / "words.npy")
