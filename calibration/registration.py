@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from tqdm.auto import tqdm
 
-from cohflash_jax.fileio import read_json
+from cohflash_jax.fileio import read_gray_image, read_json
 
 from .board import Board
 
@@ -45,11 +45,9 @@ def list_views(folders) -> list[list[Path]]:
 
 
 def read_image(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = read_gray_image(path)
     if img is None:
         raise RegistrationError(f"cannot read image {path}")
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     if img.dtype not in (np.uint8, np.uint16):
         raise RegistrationError(f"{path}: unsupported pixel type {img.dtype} (8- or 16-bit expected)")
     return img

@@ -68,3 +68,16 @@ def write_csv(path, rows: list[dict]) -> Path:
         writer.writeheader()
         writer.writerows(rows)
     return path
+
+
+def read_gray_image(path):
+    """An image file as a 2-D array of its own dtype (colour and alpha dropped to grey), or
+    None where OpenCV cannot decode it."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is not None and img.ndim == 3:
+        if img.shape[2] == 1:
+            return img[..., 0]
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    return img

@@ -159,13 +159,11 @@ def _load_map(path: Path) -> tuple[np.ndarray, float]:
         except (ValueError, OSError, EOFError) as exc:
             raise ValueError(f"{path}: not a readable .npy array ({exc})") from None
     else:
-        import cv2
+        from .fileio import read_gray_image
 
-        arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        arr = read_gray_image(path)
         if arr is None:
             raise ValueError(f"could not read image {path} (not an image OpenCV can decode)")
-        if arr.ndim == 3:
-            arr = cv2.cvtColor(arr, cv2.COLOR_BGR2GRAY if arr.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
     if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
         raise ValueError(f"{path}: a map must hold real numbers, got dtype {arr.dtype}")
     full_scale = float(np.iinfo(arr.dtype).max) if np.issubdtype(arr.dtype, np.integer) and path.suffix.lower() != ".npy" \

@@ -123,6 +123,12 @@ def test_bad_inputs_name_the_problem(tmp_path, views):
         register(few, BOARD, progress=False)
     with pytest.raises(ValueError, match="COLSxROWS"):
         Board.parse("9by6", 25)
+    # colour and alpha channels are dropped to grey (BGRA used to fail inside OpenCV)
+    from cohflash_calibration.registration import read_image
+
+    grey = cv2.imread(str(sorted(views[0].iterdir())[0]), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(tmp_path / "bgra.png"), np.dstack([grey] * 4))
+    np.testing.assert_array_equal(read_image(tmp_path / "bgra.png"), grey)
 
 
 def test_registration_reduces_depth_errors_at_edges(tmp_path):
