@@ -25,7 +25,7 @@ from tqdm.auto import tqdm
 from .calibration_file import Calibration
 from .capture import Capture, CaptureError
 from .constants import SPEED_OF_LIGHT_M_PER_S as C
-from .estimate.coarse import coarse_peak, hann_power, interpolate_peak
+from .estimate.coarse import coarse_peak, hann_power, interpolate_peak, unitary_rfft
 from .estimate.iq import carrier_axis, derotate, iq_from_frames, rotate_onto_axis, track_carrier_drift
 from .estimate.ml import (FIRST_PASS_STEPS, UniformModel, crlb_frequency_only_m, grid_for, grid_orders,
                           refine_ml_uniform)
@@ -201,7 +201,7 @@ def invert_sequence(cfg: TileConfig, r, noise_var, flags, data_status=None):
 def _invert_uniform(cfg: TileConfig, r, noise_var):
     """Uniform sweep: rFFT over the frame index, Hann peak, then (ml) the DFT-window fit."""
     n = r.shape[0]
-    spec = jnp.fft.rfft(r.T, axis=-1) / math.sqrt(n)  # (P, K), unitary: white noise stays white
+    spec = unitary_rfft(r)  # (P, K)
     power = hann_power(spec, n)
     peak = coarse_peak(power, cfg.min_bin)
     frac_bin = peak.astype(jnp.float64) if cfg.method == "dft" else interpolate_peak(power, peak).astype(jnp.float64)

@@ -19,7 +19,6 @@ gather and a few NumPy vector operations for all walkers (`vectorize=True`).
 from __future__ import annotations
 
 import dataclasses
-import math
 import warnings
 
 import emcee
@@ -28,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .estimate.coarse import unitary_rfft
 from .estimate.iq import align_carrier_static, derotate, iq_from_frames
 from .estimate.ml import UniformModel, _bin_weights, window_tables
 from .reconstruct import BAD_DATA, DEAD, OK, SATURATED, STATUS, TileConfig, process_tile
@@ -57,8 +57,7 @@ def pixel_data(cfg: TileConfig, frames, dark=None) -> PixelData:
     i, q = iq_from_frames(frames.astype(jnp.float32), cfg.iq_weights, cfg.iq_bias, dark)
     _, _, phase = align_carrier_static(i, q)
     r, qr = derotate(i, q, phase[None, :])
-    spec_r = jnp.fft.rfft(r.T, axis=-1) / math.sqrt(n)
-    spec_q = jnp.fft.rfft(qr.T, axis=-1) / math.sqrt(n)
+    spec_r, spec_q = unitary_rfft(r), unitary_rfft(qr)
     k_count = spec_r.shape[-1]
     w = min(cfg.window_bins, k_count)
     m = cfg.model

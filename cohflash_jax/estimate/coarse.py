@@ -7,8 +7,18 @@ in float64 by the ML stage.
 
 from __future__ import annotations
 
+import math
+
 import jax.numpy as jnp
 from jaxtyping import Array, Complex, Float, Int
+
+
+def unitary_rfft(seq: Float[Array, "N P"]) -> Complex[Array, "P K"]:
+    """Unitary rFFT over the frame index (white noise stays white): (N, P) → (P, N//2 + 1).
+    The 1/√N is applied in the transpose that precedes the FFT (it fuses there), not in a
+    pass of its own over the complex spectrum."""
+    n = seq.shape[0]
+    return jnp.fft.rfft(seq.T * (1 / math.sqrt(n)), axis=-1)
 
 
 def hann_power(spec: Complex[Array, "P K"], n: int) -> Float[Array, "P K"]:

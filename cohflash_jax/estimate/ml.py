@@ -355,7 +355,6 @@ def finish_pixel(model: UniformModel, pix: PixelFit, coarse_depth_m, noise_var, 
                  solved: Bool[Array, " C"], num_steps: Int[Array, " C"]) -> FitResult:
     """The fit at the polished depth of each candidate, the best candidate, and its σ from
     the Fisher information."""
-    n = model.num_frames
     data = pix.data
 
     def final_fit(offset_mm):
