@@ -200,14 +200,28 @@ def _key(point: dict, names) -> tuple:
 
 
 def read_rows(path) -> list[dict]:
+    """The rows of a sweep CSV (none where the file does not exist). A file that is not a
+    sweep CSV raises ValueError: a sweep never overwrites what it cannot resume."""
     path = Path(path)
     if not path.exists():
         return []
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            rows = list(reader)
+            header = reader.fieldnames or []
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise ValueError(f"{path} exists and is not a sweep CSV ({exc}): choose another --out") from None
+    missing = [c for c in ("swept",) + tuple(PARAMETERS) if c not in header]
+    if missing:
+        raise ValueError(f"{path} exists and is not a sweep CSV (no column {', '.join(missing[:3])}"
+                         f"{' …' if len(missing) > 3 else ''}): choose another --out")
     out = []
-    for r in rows:  # empty cells (no Monte Carlo at that point) are left out
-        out.append({k: (v if k == "swept" else float(v)) for k, v in r.items() if v not in ("", None)})
+    for line, r in enumerate(rows, start=2):  # empty cells (no Monte Carlo at that point) are left out
+        try:
+            out.append({k: (v if k == "swept" else float(v)) for k, v in r.items() if v not in ("", None)})
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}, line {line}: not a number where one is expected") from None
     return out
 
 

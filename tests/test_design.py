@@ -136,6 +136,12 @@ def test_resumed_sweep_equals_uninterrupted(tmp_path):
     with pytest.raises(ValueError, match="num_steps"):
         design.run_sweep(axes, part, fixed={"num_steps": 512.0}, progress=False)
     assert part.read_text() == (tmp_path / "whole.csv").read_text()  # nothing lost
+    # a file that is not a sweep CSV (here only a header line, or binary) is refused, never overwritten
+    for name, content in (("notes.csv", b"run,comment\n"), ("blob.csv", b"\xff\xfe\x00")):
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ValueError, match="not a sweep CSV"):
+            design.run_sweep(axes, tmp_path / name, fixed=fixed, progress=False)
+        assert (tmp_path / name).read_bytes() == content
 
 
 def test_sweep_cli_and_bad_axes(tmp_path):
