@@ -523,8 +523,29 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-# arguments that name files a command writes
+# arguments that name files a command writes, and files it reads
 OUTPUT_ARGUMENTS = ("out", "png", "ply", "tiff", "plot", "report")
+INPUT_ARGUMENTS = ("capture", "calibration", "registration", "dark", "flat", "depth_map", "reflectance_map")
+
+
+def check_output_paths(args) -> None:
+    """Before any work: every output's folder exists, no output is an input of the command
+    (`reconstruct x.h5 --out x.h5` replaced the capture with its depth map) and no two
+    outputs are one file."""
+    if args.command == "demo":  # its --out is a folder it makes
+        return
+    outputs = [(name, getattr(args, name)) for name in OUTPUT_ARGUMENTS if getattr(args, name, None)]
+    require_output_folders(*(path for _, path in outputs))
+    inputs = {Path(getattr(args, name)).resolve(): name for name in INPUT_ARGUMENTS if getattr(args, name, None)}
+    seen = {}
+    for name, path in outputs:
+        where = Path(path).resolve()
+        if where in inputs:
+            raise ValueError(f"--{name} {path} is the {inputs[where].replace('_', ' ')} file this command reads: "
+                             "writing it would destroy the input; choose another path")
+        if where in seen:
+            raise ValueError(f"--{name} and --{seen[where]} name the same file {path}")
+        seen[where] = name
 
 
 def main(argv=None) -> int:
@@ -533,8 +554,7 @@ def main(argv=None) -> int:
         args.snr_threshold_db = DEFAULT_SNR_THRESHOLD_DB
     enable_compilation_cache()
     try:
-        # every output file's folder must exist before any work starts (demo's --out is a folder it makes)
-        require_output_folders(*(getattr(args, name, None) for name in OUTPUT_ARGUMENTS if args.command != "demo"))
+        check_output_paths(args)
         return args.func(args)
     except BrokenPipeError:  # e.g. `cohflash scenes | head` (before OSError, of which it is one)
         sys.stderr.close()

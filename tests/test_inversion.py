@@ -217,6 +217,11 @@ def test_reconstruct_cli_end_to_end(tmp_path, capsys):
     assert main(["reconstruct", str(cap), "--out", str(tmp_path / "x.h5"), "--ply", str(tmp_path / "no" / "c.ply")]) == 2
     assert f"output folder does not exist: {tmp_path / 'no'}" in capsys.readouterr().err
     assert not (tmp_path / "x.h5").exists()
+    # an output onto the capture itself is refused: the capture stays as it was
+    before = cap.read_bytes()
+    assert main(["reconstruct", str(cap), "--out", str(tmp_path / "x.h5"), "--png", str(cap)]) == 2
+    assert "is the capture file this command reads" in capsys.readouterr().err
+    assert cap.read_bytes() == before and not (tmp_path / "x.h5").exists()
 
 
 def test_calibration_file_applies_the_true_hybrid(tmp_path, paper_instrument, noise_effects):
