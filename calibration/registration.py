@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
 from pathlib import Path
 
@@ -205,15 +206,29 @@ class Registration:
                                       np.array(c.get("std_intrinsics", [])), list(c.get("views_used", [])),
                                       dict(c.get("views_left_out", {}))) for c in data["cameras"]]
             poses = data["relative_poses"]
-            return cls(tuple(data["image_size"]), Board(**data["board"]), cams,
-                       [np.array(p["R"], np.float64) for p in poses], [np.array(p["T_mm"], np.float64) for p in poses],
-                       [float(p.get("stereo_rms_px", 0.0)) for p in poses], float(data["working_distance_mm"]),
-                       list(data.get("xor_misalignment_before", [])), list(data.get("xor_misalignment_after", [])),
-                       dict(data.get("failed_views", {})), float(data.get("seconds_per_view", 0.0)))
+            reg = cls(tuple(int(v) for v in data["image_size"]), Board(**data["board"]), cams,
+                      [np.array(p["R"], np.float64) for p in poses], [np.array(p["T_mm"], np.float64) for p in poses],
+                      [float(p.get("stereo_rms_px", 0.0)) for p in poses], float(data["working_distance_mm"]),
+                      list(data.get("xor_misalignment_before", [])), list(data.get("xor_misalignment_after", [])),
+                      dict(data.get("failed_views", {})), float(data.get("seconds_per_view", 0.0)))
         except (KeyError, TypeError, ValueError) as exc:
             raise RegistrationError(f"{source}: malformed registration file ({exc})") from None
-        if len(cams) != 4 or len(poses) != 3:
-            raise RegistrationError(f"{source}: expected 4 cameras and 3 relative poses")
+        if len(reg.cameras) != 4 or len(reg.R) != 3:
+            raise RegistrationError(f"{source}: expected 4 cameras and 3 relative poses, got {len(reg.cameras)} "
+                                    f"and {len(reg.R)}")
+        shaped = [(f"camera {k + 1} camera_matrix", c.camera_matrix, (3, 3)) for k, c in enumerate(reg.cameras)]
+        shaped += [(f"camera {k + 1} dist_coeffs", c.dist_coeffs, c.dist_coeffs.shape) for k, c in enumerate(reg.cameras)]
+        shaped += [(f"CCD {k + 2} R", r, (3, 3)) for k, r in enumerate(reg.R)]
+        shaped += [(f"CCD {k + 2} T_mm", t, (3,)) for k, t in enumerate(reg.T)]
+        for name, arr, shape in shaped:
+            if arr.shape != shape or not np.all(np.isfinite(arr)):
+                raise RegistrationError(f"{source}: {name} must be a finite array of shape {shape}, got {arr.shape}"
+                                        + ("" if arr.shape != shape else " with NaN/inf"))
+        if len(reg.image_size) != 2 or min(reg.image_size) < 2 or not (reg.distance_mm > 0 and
+                                                                       math.isfinite(reg.distance_mm)):
+            raise RegistrationError(f"{source}: image_size {reg.image_size} or working distance {reg.distance_mm} mm "
+                                    "out of range")
+        return reg
 
 
 def load_registration(path) -> Registration:

@@ -92,6 +92,15 @@ def test_cli_writes_registration_and_report_that_round_trip(tmp_path, views, cap
     # a binary file in the JSON's place (the report PNG, an HDF5 capture) is named as such
     with pytest.raises(RegistrationError, match=f"{report.name}: not a registration JSON file"):
         load_registration(report)
+    # tampered files: a NaN intrinsic, a pose missing (before: accepted, and an IndexError)
+    bad = tmp_path / "bad.json"
+    for change, match in ((lambda d: d["cameras"][1]["camera_matrix"][0].__setitem__(0, float("nan")), "NaN"),
+                          (lambda d: d["relative_poses"].pop(), "3 relative poses, got 4 and 2")):
+        tampered = json.loads(out.read_text())
+        change(tampered)
+        bad.write_text(json.dumps(tampered))
+        with pytest.raises(RegistrationError, match=match):
+            load_registration(bad)
 
 
 def test_bad_inputs_name_the_problem(tmp_path, views):
