@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import warnings
 from pathlib import Path
 
@@ -65,8 +66,11 @@ class Calibration:
                                 tuple(map(float, h.get("offsets_dn") or (0.0,) * 4)))
             except (TypeError, ValueError) as exc:
                 raise ValueError(f"{source}: hybrid: {exc}") from None
-            if not np.all(np.isfinite(np.asarray(hybrid.phases_rad, float))):
-                raise ValueError(f"{source}: hybrid phases_rad contains NaN or inf")
+            for name in ("phases_rad", "relative_gains", "offsets_dn"):
+                if not np.all(np.isfinite(np.asarray(getattr(hybrid, name), float))):
+                    raise ValueError(f"{source}: hybrid {name} contains NaN or inf")
+            if min(hybrid.relative_gains) <= 0:
+                raise ValueError(f"{source}: hybrid relative_gains must be positive, got {hybrid.relative_gains}")
         else:
             notes.append("hybrid not identified in the calibration: nominal hybrid used")
         mod = data.get("modulator")
@@ -85,6 +89,14 @@ class Calibration:
         if delay is None:
             notes.append("system delay not identified in the calibration: τ_sys = 0 used")
             delay = 0.0
+        try:
+            delay = float(delay)
+        except (TypeError, ValueError):
+            delay = math.nan
+        if not math.isfinite(delay):
+            raise ValueError(f"{source}: system_delay_s must be a finite number of seconds, got {delay!r}")
+        if modulator is not None and not all(math.isfinite(v) for v in (modulator.modulation_index, modulator.bias_rad)):
+            raise ValueError(f"{source}: modulator modulation_index and bias_rad must be finite")
         maps = maps or {}
         for name, arr in maps.items():
             if arr.ndim != 3 or arr.shape[0] != 4 or not np.all(np.isfinite(arr)):

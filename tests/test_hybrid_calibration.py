@@ -203,7 +203,11 @@ def test_calibration_file_round_trip_and_bad_files(tmp_path):
     for text, match in ((json.dumps({"format": "other"}), "expected 'cohflash-calibration'"),
                         ("{broken", "not valid JSON"),
                         (json.dumps({**doc, "format_version": 7}), "format_version"),
-                        (json.dumps({**doc, "hybrid": {"phases_rad": [0, 1, 2]}}), "shape")):
+                        (json.dumps({**doc, "hybrid": {"phases_rad": [0, 1, 2]}}), "shape"),
+                        (json.dumps({**doc, "hybrid": {**doc["hybrid"], "relative_gains": [1, 0, 1, 1]}}), "positive"),
+                        (json.dumps({**doc, "hybrid": {**doc["hybrid"], "offsets_dn": [0, None, 0, 0]}}), "hybrid"),
+                        (json.dumps({**doc, "system_delay_s": {"value": "soon"}}), "system_delay_s"),
+                        (json.dumps({**doc, "system_delay_s": float("nan")}), "system_delay_s")):
         bad.write_text(text)
         with pytest.raises(ValueError, match=match):
             Calibration.load(bad)
