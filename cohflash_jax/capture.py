@@ -102,6 +102,12 @@ class Capture:
     def _fail(self, msg):
         raise CaptureError(f"{self.path}: {msg}")
 
+    def _number_attr(self, name) -> float:
+        try:
+            return float(np.asarray(self._file.attrs[name]))
+        except (TypeError, ValueError):
+            self._fail(f"attribute {name} must be a number, got {self._file.attrs[name]!r}")
+
     def _validate(self):
         f = self._file
         if f.attrs.get("format") != FORMAT_NAME:
@@ -113,7 +119,7 @@ class Capture:
         for k in REQUIRED_ATTRS:
             if k not in f.attrs:
                 self._fail(f"required attribute {k!r} is missing")
-            v = float(np.asarray(f.attrs[k]))
+            v = self._number_attr(k)
             if not (np.isfinite(v) and v > 0):
                 self._fail(f"attribute {k} must be a positive number, got {v}")
         for name in ("frames", "frequencies_hz", "hybrid_phases_rad"):
@@ -142,6 +148,10 @@ class Capture:
             self._fail(f"hybrid_phases_rad must have shape (4,), got {phases.shape}")
         if not np.all(np.isfinite(phases[()])):
             self._fail("hybrid_phases_rad contains NaN or inf")
+        if "adc_bits" in f.attrs:
+            bits = self._number_attr("adc_bits")
+            if not (np.isfinite(bits) and bits == round(bits) and 1 <= bits <= 16):
+                self._fail(f"attribute adc_bits must be an integer from 1 to 16, got {bits:g}")
         if "dark" in f:
             if f["dark"].shape != (4, h, w):
                 self._fail(f"dark must have shape (4, {h}, {w}), got {f['dark'].shape}")

@@ -100,6 +100,8 @@ def _write(path, **over):
     ({"attr_format_version": 2}, "format_version 2"),
     ({"attr_exposure_s": None}, "exposure_s"),
     ({"attr_frame_rate_hz": -1.0}, "frame_rate_hz"),
+    ({"attr_exposure_s": "fast"}, "exposure_s must be a number, got 'fast'"),
+    ({"attr_adc_bits": 40}, "adc_bits must be an integer from 1 to 16"),
     ({"frames": np.zeros((3, 8, 2, 3), np.uint16)}, r"shape \(4, N, H, W\)"),
     ({"frames": np.zeros((4, 8, 2, 3), np.int32)}, "dtype"),
     ({"frames": None}, "frames"),
