@@ -297,6 +297,19 @@ def run_sweep(axes: list[tuple[str, np.ndarray]], out_csv, *, fixed: dict | None
 
 
 # ----------------------------------------------------------------------------- figures
+def sweep_heat_map(rows: list[dict], names: list[str]):
+    """The CRLB (mm) over the first two swept axes → (xs, ys, grid (len(ys), len(xs)), at):
+    beyond two axes, the slice at the smallest value of each further axis, `at` {name: value}."""
+    at = {n: min(float(r[n]) for r in rows) for n in names[2:]}
+    rows = [r for r in rows if all(float(r[n]) == v for n, v in at.items())]
+    xs = np.unique([float(r[names[0]]) for r in rows])
+    ys = np.unique([float(r[names[1]]) for r in rows])
+    grid = np.full((ys.size, xs.size), np.nan)
+    for r in rows:
+        grid[np.searchsorted(ys, float(r[names[1]])), np.searchsorted(xs, float(r[names[0]]))] = float(r["crlb_mm"])
+    return xs, ys, grid, at
+
+
 def plot_sweep(rows: list[dict], names: list[str], path) -> Path:
     """Heat map with precision contours (two axes) or precision against the swept parameter
     (one axis; against frames and acquisition time when it is num_steps), CRLB and Monte Carlo
@@ -310,11 +323,7 @@ def plot_sweep(rows: list[dict], names: list[str], path) -> Path:
 
     crlb = np.array([float(r["crlb_mm"]) for r in rows])
     if len(names) >= 2:
-        xs = np.unique([float(r[names[0]]) for r in rows])
-        ys = np.unique([float(r[names[1]]) for r in rows])
-        grid = np.full((ys.size, xs.size), np.nan)
-        for r, c in zip(rows, crlb):
-            grid[np.searchsorted(ys, float(r[names[1]])), np.searchsorted(xs, float(r[names[0]]))] = c
+        xs, ys, grid, at = sweep_heat_map(rows, names)
         fig, ax = plt.subplots(figsize=(7, 5.5), constrained_layout=True)
         mesh = ax.pcolormesh(xs, ys, grid, shading="nearest", norm=matplotlib.colors.LogNorm(), cmap="viridis")
         fig.colorbar(mesh, ax=ax, label="CRLB of depth (mm)")
@@ -324,8 +333,8 @@ def plot_sweep(rows: list[dict], names: list[str], path) -> Path:
             cs = ax.contour(xs, ys, grid, levels=levels, colors="w", linewidths=0.8)
             ax.clabel(cs, fmt=lambda v: f"{v:g} mm", fontsize=8)
         ax.set(xlabel=names[0], ylabel=names[1], title="depth precision bound (phase-locked CRLB)")
-        if len(names) > 2:
-            ax.set_title(ax.get_title() + f" — first of {len(names)} axes shown")
+        if at:
+            ax.set_title(ax.get_title() + "\nat " + ", ".join(f"{n} = {v:g}" for n, v in at.items()), fontsize=10)
         return save_figure(fig, path)
     name = names[0]
     x = np.array([float(r[name]) for r in rows])

@@ -160,6 +160,16 @@ def test_sweep_cli_and_bad_axes(tmp_path):
     assert not (tmp_path / "x.csv").exists()
 
 
+def test_sweep_heat_map_of_three_axes_is_the_first_slice():
+    """Beyond two axes the heat map shows the slice at each further axis's smallest value
+    (it used to overwrite the cells with whichever row came last)."""
+    rows = [{"bandwidth_ghz": b, "distance_m": d, "reflectance": r, "crlb_mm": b + 10 * d + 100 * r}
+            for r in (0.2, 0.1) for d in (30.0, 40.0) for b in (6.0, 7.0)]
+    xs, ys, grid, at = design.sweep_heat_map(rows, ["bandwidth_ghz", "distance_m", "reflectance"])
+    assert at == {"reflectance": 0.1}
+    np.testing.assert_allclose(grid, xs[None, :] + 10 * ys[:, None] + 10.0)
+
+
 def test_design_cli(small_design, tmp_path):
     """The command reports the optimum and its active constraints, validates it, writes JSON;
     an unreachable target says why and exits 1."""
