@@ -340,8 +340,9 @@ def plot_sweep(rows: list[dict], names: list[str], path) -> Path:
     x = np.array([float(r[name]) for r in rows])
     order = np.argsort(x)
     fig, ax = plt.subplots(figsize=(7, 5), constrained_layout=True)
-    ax.loglog(x[order], crlb[order], "-", label="CRLB, phase-locked (autodiff Fisher)")
-    ax.loglog(x[order], np.array([float(r["crlb_frequency_only_mm"]) for r in rows])[order], "--",
+    # markers, so that a sweep of one point shows
+    ax.loglog(x[order], crlb[order], "-", marker=".", label="CRLB, phase-locked (autodiff Fisher)")
+    ax.loglog(x[order], np.array([float(r["crlb_frequency_only_mm"]) for r in rows])[order], "--", marker=".",
               label="CRLB, frequency only")
     mc = np.array([float(r.get("mc_precision_mm", float("nan"))) for r in rows])
     trials = np.array([float(r.get("mc_trials", float("nan"))) for r in rows])
