@@ -226,7 +226,7 @@ def cmd_uncertainty(args) -> int:
     t0 = time.perf_counter()
     with Capture(args.capture) as cap:
         if args.chains:
-            chains = Path(args.out).with_suffix(".chains.h5")
+            chains = chains_path(args.out)
             with atomic_path(chains) as tmp:
                 results, skipped = run_pixels(cap, pixels, options, seed=args.seed, max_steps=args.max_steps,
                                               chains_path=tmp, progress=not args.quiet)
@@ -528,6 +528,11 @@ OUTPUT_ARGUMENTS = ("out", "png", "ply", "tiff", "plot", "report")
 INPUT_ARGUMENTS = ("capture", "calibration", "registration", "dark", "flat", "depth_map", "reflectance_map")
 
 
+def chains_path(out) -> Path:
+    """Where `uncertainty --chains` keeps every chain: OUT.chains.h5."""
+    return Path(out).with_suffix(".chains.h5")
+
+
 def check_output_paths(args) -> None:
     """Before any work: every output's folder exists, no output is an input of the command
     (`reconstruct x.h5 --out x.h5` replaced the capture with its depth map) and no two
@@ -535,6 +540,8 @@ def check_output_paths(args) -> None:
     if args.command == "demo":  # its --out is a folder it makes
         return
     outputs = [(name, getattr(args, name)) for name in OUTPUT_ARGUMENTS if getattr(args, name, None)]
+    if getattr(args, "chains", False):
+        outputs.append(("chains", chains_path(args.out)))
     require_output_folders(*(path for _, path in outputs))
     inputs = {Path(getattr(args, name)).resolve(): name for name in INPUT_ARGUMENTS if getattr(args, name, None)}
     seen = {}
