@@ -91,6 +91,11 @@ def test_zero_echo_ends_with_a_clear_result(paper_instrument, tmp_path, capsys):
     assert main(["uncertainty", str(cap), "--pixel", "5,5", "--out", str(out)]) == 2
     assert main(["uncertainty", str(cap), "--out", str(out)]) == 2
     assert main(["uncertainty", str(cap), "--pixel", "0,0", "--out", str(out), "--max-steps", "0"]) == 2
+    # --chains writes OUT.chains.h5: refused where that is the capture itself
+    twin = tmp_path / "p.chains.h5"
+    twin.write_bytes(cap.read_bytes())
+    assert main(["uncertainty", str(twin), "--pixel", "0,0", "--out", str(tmp_path / "p.h5"), "--chains"]) == 2
+    assert twin.read_bytes() == cap.read_bytes()
     # a dead pixel (constant frames) gets no posterior: it is skipped and named, the rest sampled
     with h5py.File(cap, "r+") as f:
         f["frames"][:, :, 1, 0] = 200
