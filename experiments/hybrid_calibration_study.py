@@ -14,12 +14,12 @@ hybrid_study.png (bias and precision per case, with the CRLB).
 
 from __future__ import annotations
 
-import argparse
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from cohflash_experiments import study_parser
 import cohflash_jax as cf
 from cohflash_jax.calibration_file import Calibration
 from cohflash_jax.capture import Capture
@@ -135,10 +135,10 @@ def _plot(path, rows):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", type=Path, default=Path("out/hybrid"))
-    p.add_argument("--size", type=int, default=24)
-    p.add_argument("--seeds", type=int, default=2)
+    p = study_parser(__doc__)
+    p.add_argument("--out", type=Path, default=Path("out/hybrid"), help="output folder")
+    p.add_argument("--size", type=int, default=24, help="pixels per side of each simulated capture")
+    p.add_argument("--seeds", type=int, default=2, help="noise realisations per case")
     a = p.parse_args()
     run(a.out, a.size, a.seeds)
 

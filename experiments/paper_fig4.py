@@ -10,11 +10,11 @@ fig4.md comparing our numbers with the paper's. Resumable: rerunning skips finis
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
 
+from cohflash_experiments import study_parser
 from cohflash_jax.design import parse_axis, plot_sweep, run_sweep
 
 PAPER = {"crlb_30m_mm": 0.079, "measured_30m_mm": 0.47, "frames_35_mm": 1.33, "frames_3500_mm": 0.35}
@@ -73,10 +73,10 @@ def run(out: Path, mc_trials: int, workers: int):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", type=Path, default=Path("out/fig4"))
-    p.add_argument("--mc-trials", type=int, default=256)
-    p.add_argument("--workers", type=int, default=1)
+    p = study_parser(__doc__)
+    p.add_argument("--out", type=Path, default=Path("out/fig4"), help="output folder")
+    p.add_argument("--mc-trials", type=int, default=256, help="pixels per Monte Carlo point")
+    p.add_argument("--workers", type=int, default=1, help="processes for the Monte Carlo points")
     a = p.parse_args()
     run(a.out, a.mc_trials, a.workers)
 

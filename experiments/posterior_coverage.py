@@ -6,7 +6,6 @@ against the ML fit (a row of the accuracy-versus-time table).
 
 from __future__ import annotations
 
-import argparse
 import time
 import warnings
 from pathlib import Path
@@ -14,6 +13,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from cohflash_experiments import study_parser
 import cohflash_jax as cf
 from cohflash_jax.fileio import write_csv
 from cohflash_jax.hybrid import Hybrid
@@ -64,11 +64,11 @@ def run(out: Path, pixels: int, reflectance: float, seed: int):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", default="out/posterior")
-    p.add_argument("--pixels", type=int, default=400)
-    p.add_argument("--reflectance", type=float, default=0.5)
-    p.add_argument("--seed", type=int, default=7)
+    p = study_parser(__doc__)
+    p.add_argument("--out", default="out/posterior", help="output folder")
+    p.add_argument("--pixels", type=int, default=400, help="simulated pixels sampled with emcee")
+    p.add_argument("--reflectance", type=float, default=0.5, help="target reflectance (sets the SNR)")
+    p.add_argument("--seed", type=int, default=7, help="random seed")
     args = p.parse_args()
     run(Path(args.out), args.pixels, args.reflectance, args.seed)
 

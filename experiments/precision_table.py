@@ -12,12 +12,12 @@ clears each candidate threshold, every validity check but the SNR applied).
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import jax
 import numpy as np
 
+from cohflash_experiments import study_parser
 import cohflash_jax as cf
 from cohflash_jax.constants import SPEED_OF_LIGHT_M_PER_S as C
 from cohflash_jax.fileio import write_csv
@@ -147,9 +147,9 @@ def ten_hz_threshold(out: Path, seeds: int, size: int = 64, distance_m: float = 
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", default="out/precision")
-    p.add_argument("--seeds", type=int, default=4)
+    p = study_parser(__doc__)
+    p.add_argument("--out", default="out/precision", help="output folder")
+    p.add_argument("--seeds", type=int, default=4, help="noise realisations of the planar capture")
     args = p.parse_args()
     run(Path(args.out), args.seeds)
 

@@ -6,12 +6,12 @@ intrinsics and poses against truth, reprojection RMS, XOR misalignment, time per
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from cohflash_experiments import study_parser
 from cohflash_calibration.board import Board
 from cohflash_jax.fileio import write_csv
 from cohflash_calibration.registration import register, save_report, write_registration
@@ -49,10 +49,10 @@ def run(out: Path, views: int, seed: int):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", default="out/registration")
-    p.add_argument("--views", type=int, default=30)
-    p.add_argument("--seed", type=int, default=0)
+    p = study_parser(__doc__)
+    p.add_argument("--out", default="out/registration", help="output folder")
+    p.add_argument("--views", type=int, default=30, help="chessboard views per CCD")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
     args = p.parse_args()
     run(Path(args.out), args.views, args.seed)
 
