@@ -183,3 +183,20 @@ def test_design_cli(small_design, tmp_path):
     assert doc["unambiguous_range_m"] >= 38.0 and doc["validation"]["mc_trials"] == 64
     assert main(["design", "--target-precision-mm", "0.001", "--max-range-m", "38", "--max-frequency-ghz", "6",
                  "--max-frames", "256", "--validate-trials", "0", "--quiet"]) == 1
+
+
+@pytest.mark.parametrize("study", ["paper_fig4", "precision_table", "posterior_coverage", "hybrid_calibration_study",
+                                   "registration_synthetic"])
+def test_study_scripts_explain_themselves(study):
+    """`python -m cohflash_experiments.NAME --help`: the whole docstring and every option's default."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-m", f"cohflash_experiments.{study}", "--help"], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert f"python -m cohflash_experiments.{study}" in out.stdout and "--out OUT" in out.stdout
+    lines = out.stdout.splitlines() + [""]
+    # an option's help (with its default) is on its own line or the next
+    helps = [line + nxt for line, nxt in zip(lines, lines[1:]) if line.strip().startswith("--")]
+    assert helps and all("(default:" in h for h in helps)
