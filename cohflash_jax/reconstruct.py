@@ -42,6 +42,7 @@ OK, LOW_SNR, NOT_CONVERGED, FIT_FAILED, BAD_DATA, SATURATED, DEAD, OUT_OF_RANGE 
 POOR_FIT = 9
 DC_EDGE = 10
 DEFAULT_SNR_THRESHOLD_DB = 14.0
+MIN_FRAMES = 4
 
 # Reduced χ² of the ML window fit above which the model does not describe the pixel (measured:
 # ≤ 2.9 at 30 dB peak-bin SNR with sidebands and roll-off; ~18 when carrier tracking failed
@@ -347,6 +348,9 @@ def build_config(frequencies_hz, hybrid: Hybrid, modulator: MZM, system_delay_s:
                  saturation_dn, options: ReconstructOptions) -> TileConfig:
     f = np.asarray(frequencies_hz, np.float64)
     n = f.size
+    if n < MIN_FRAMES:
+        raise ValueError(f"{n} frames are too few to reconstruct depth: need ≥ {MIN_FRAMES} (a tone's DFT peak "
+                         "beyond DC, with a neighbour on each side)")
     step = float(np.median(np.diff(f)))
     uniform = bool(np.allclose(np.diff(f), step, rtol=1e-9, atol=1e-3))
     # sideband weights at the sweep's mean frequency: with a roll-off the fundamental's

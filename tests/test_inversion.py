@@ -320,6 +320,13 @@ def test_options_out_of_range_are_refused():
             ReconstructOptions(**bad)
 
 
+def test_too_few_frames_are_refused():
+    """Two or three frames leave no DFT bin beyond DC with neighbours (an IndexError before)."""
+    frames = np.full((4, 3, 2, 2), 100, np.uint16)
+    with pytest.raises(ValueError, match="3 frames are too few"):
+        reconstruct_array(frames, 1e8 + 2e6 * np.arange(3), OPTS["ml"])
+
+
 def test_sub_tile_size_follows_the_platform():
     """CPU: cache-sized sub-tiles of at most 8192 px, at least 4 a tile; a GPU takes the tile
     whole up to 256 MiB of frames."""
