@@ -75,7 +75,7 @@ def save_preview_png(path, depth_m, valid, title: str = "", reference_m: float |
     fig, ax = plt.subplots(figsize=(6.4, 6.4 * h / w + 0.6), dpi=110)
     im = ax.imshow(rel_mm, cmap=cmap, vmin=lo, vmax=hi if hi > lo else lo + 1, interpolation="nearest")
     cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, extend="both")
-    cb.set_label(f"depth − {ref:.4f} m  (mm)")
+    cb.set_label(f"depth − {ref:.4f} m  (mm)" if finite.size else "no valid pixel: nothing to colour")
     ax.set_title(title or f"depth ({valid.mean():.1%} valid; grey = invalid)")
     ax.set_xlabel("column")
     ax.set_ylabel("row")
