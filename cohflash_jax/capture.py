@@ -27,6 +27,18 @@ REQUIRED_ATTRS = ("exposure_s", "frame_rate_hz", "wavelength_m")
 FRAME_DTYPES = (np.dtype(np.uint16), np.dtype(np.float32))
 
 
+def frequency_problem(frequencies_hz) -> str | None:
+    """What is wrong with a sweep's frequencies (NaN/inf, not strictly increasing), or None."""
+    f = np.asarray(frequencies_hz, np.float64)
+    if f.ndim != 1:
+        return f"frequencies_hz must be 1-D, got shape {f.shape}"
+    if not np.all(np.isfinite(f)):
+        return "frequencies_hz contains NaN or inf"
+    if np.any(np.diff(f) <= 0):
+        return f"frequencies_hz must be strictly increasing (first violation at frame {int(np.argmax(np.diff(f) <= 0)) + 1})"
+    return None
+
+
 class CaptureError(ValueError):
     """A capture file is missing, corrupt or does not follow format v1."""
 
@@ -138,11 +150,9 @@ class Capture:
             self._fail(f"frequencies_hz has shape {freqs.shape}, expected ({n},) to match frames")
         if freqs.dtype != np.float64:
             self._fail(f"frequencies_hz must be float64, got {freqs.dtype}")
-        fr = freqs[()]
-        if not np.all(np.isfinite(fr)):
-            self._fail("frequencies_hz contains NaN or inf")
-        if np.any(np.diff(fr) <= 0):
-            self._fail(f"frequencies_hz must be strictly increasing (first violation at frame {int(np.argmax(np.diff(fr) <= 0)) + 1})")
+        problem = frequency_problem(freqs[()])
+        if problem:
+            self._fail(problem)
         phases = f["hybrid_phases_rad"]
         if phases.shape != (4,):
             self._fail(f"hybrid_phases_rad must have shape (4,), got {phases.shape}")

@@ -23,7 +23,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from .calibration_file import Calibration
-from .capture import Capture, CaptureError
+from .capture import Capture, CaptureError, frequency_problem
 from .constants import SPEED_OF_LIGHT_M_PER_S as C
 from .estimate.coarse import coarse_peak, hann_power, interpolate_peak, unitary_rfft
 from .estimate.iq import carrier_axis, derotate, iq_from_frames, rotate_onto_axis, track_carrier_drift
@@ -346,6 +346,9 @@ def unfold_delay(folded_cycles, period_s: float, fold_index: int, system_delay_s
 
 def build_config(frequencies_hz, hybrid: Hybrid, modulator: MZM, system_delay_s: float,
                  saturation_dn, options: ReconstructOptions) -> TileConfig:
+    problem = frequency_problem(frequencies_hz)
+    if problem:
+        raise ValueError(problem)
     f = np.asarray(frequencies_hz, np.float64)
     n = f.size
     if n < MIN_FRAMES:
@@ -409,6 +412,10 @@ def reconstruct_array(frames, frequencies_hz, options: ReconstructOptions | None
     if frames.ndim != 4 or frames.shape[0] != 4:
         raise ValueError(f"frames must have shape (4, N, H, W), got {frames.shape}")
     _, n, h, w = frames.shape
+    for name, arr, shape in (("frequencies_hz", frequencies_hz, (n,)), ("dark", dark, (4, h, w)),
+                             ("carrier_phase_rad", carrier_phase_rad, (n,))):
+        if arr is not None and np.shape(arr) != shape:
+            raise ValueError(f"{name} must have shape {shape} to match frames {frames.shape}, got {np.shape(arr)}")
     cfg = build_config(frequencies_hz, hybrid or Hybrid(), modulator or MZM(), system_delay_s, saturation_dn, options)
     d = None if dark is None else np.asarray(dark, np.float32).reshape(4, h * w)
     carrier = None if carrier_phase_rad is None else jnp.asarray(carrier_phase_rad)

@@ -320,11 +320,21 @@ def test_options_out_of_range_are_refused():
             ReconstructOptions(**bad)
 
 
-def test_too_few_frames_are_refused():
-    """Two or three frames leave no DFT bin beyond DC with neighbours (an IndexError before)."""
+def test_reconstruct_array_refuses_inputs_that_do_not_fit():
+    """In-memory frames get the checks a capture file gets. Two or three frames leave no DFT
+    bin beyond DC with neighbours (an IndexError before); a frequency list of another length
+    ran silently with the wrong N."""
     frames = np.full((4, 3, 2, 2), 100, np.uint16)
     with pytest.raises(ValueError, match="3 frames are too few"):
         reconstruct_array(frames, 1e8 + 2e6 * np.arange(3), OPTS["ml"])
+    frames, f = np.full((4, 8, 2, 2), 100, np.uint16), 1e8 + 2e6 * np.arange(8)
+    for kwargs, match in (({"frequencies_hz": f[:5]}, r"frequencies_hz must have shape \(8,\)"),
+                          ({"frequencies_hz": f[::-1]}, "strictly increasing"),
+                          ({"frequencies_hz": np.where(np.arange(8) == 2, np.nan, f)}, "NaN"),
+                          ({"frequencies_hz": f, "dark": np.zeros((4, 3, 3))}, r"dark must have shape \(4, 2, 2\)"),
+                          ({"frequencies_hz": f, "carrier_phase_rad": np.zeros(3)}, "carrier_phase_rad")):
+        with pytest.raises(ValueError, match=match):
+            reconstruct_array(frames, options=OPTS["ml"], **kwargs)
 
 
 def test_sub_tile_size_follows_the_platform():
