@@ -239,6 +239,8 @@ def register(folders, board: Board, distance_mm: float | None = None, progress: 
     """Calibrate four CCDs from chessboard views (folder k = CCD k, views paired by sorted name)."""
     if len(folders) != 4:
         raise RegistrationError(f"four image folders are needed (CCD 1–4), got {len(folders)}")
+    if distance_mm is not None and not (math.isfinite(distance_mm) and distance_mm > 0):
+        raise RegistrationError(f"the working distance must be a positive number of mm, got {distance_mm}")
     views = list_views(folders)
     t0 = time.perf_counter()
     size, depth = None, None

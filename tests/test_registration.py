@@ -132,6 +132,8 @@ def test_bad_inputs_name_the_problem(tmp_path, views):
         register(few, BOARD, progress=False)
     with pytest.raises(ValueError, match="COLSxROWS"):
         Board.parse("9by6", 25)
+    with pytest.raises(RegistrationError, match="working distance must be a positive"):
+        register(list(views), BOARD, distance_mm=-5.0, progress=False)
     # colour and alpha channels are dropped to grey (BGRA used to fail inside OpenCV)
     from cohflash_calibration.registration import read_image
 
