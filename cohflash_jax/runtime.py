@@ -11,6 +11,32 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc mallopt parameters (mallo
 _applied = False
 
 
+def async_filter_jit(fun):
+    """`jax.jit` of `fun` with its non-array arguments static, as `eqx.filter_jit` does, but
+    returning as soon as the work is queued. `eqx.filter_jit` (equinox 0.13) waits for every
+    call to finish (it blocks on a marker output, for its runtime-error reporting), so a
+    pipeline of filter-jitted programs never overlapped file reads and host copies with
+    computation. Outputs: arrays only; no runtime errors are raised from inside, so
+    `eqx.error_if` does not belong in `fun`."""
+    import functools
+
+    import equinox as eqx
+    import jax
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def run(static, dynamic):
+        args, kwargs = eqx.combine(dynamic, static)
+        return fun(*args, **dict(kwargs))
+
+    @functools.wraps(fun)
+    def call(*args, **kwargs):
+        # keyword arguments as a tuple of pairs: the static half must be hashable
+        dynamic, static = eqx.partition((args, tuple(sorted(kwargs.items()))), eqx.is_array)
+        return run(static, dynamic)
+
+    return call
+
+
 def retain_freed_memory(threshold_bytes: int = 1 << 30) -> bool:
     """Ask glibc to serve blocks below `threshold_bytes` from its heap and to keep freed
     memory for reuse, instead of mapping each large block afresh and unmapping it on free.

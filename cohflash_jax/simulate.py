@@ -29,6 +29,7 @@ from .effects import EffectSettings, parse_effects
 from .hybrid import NOMINAL_PHASES_RAD, Hybrid
 from .instrument import Instrument
 from .modulator import beat_spectrum, mean_transmission, sideband_weights
+from .runtime import async_filter_jit
 from .scenes import Scene
 
 # Streams of the PRNG key, one per effect, so an effect's draws never shift another's.
@@ -198,7 +199,7 @@ def sensor_readout(key: PRNGKeyArray, electrons: Float[Array, "4 ..."], instrume
     return dn.astype(jnp.float32)
 
 
-@eqx.filter_jit
+@async_filter_jit  # returns at once: the next chunk computes while the caller writes this one
 def _frames_chunk(instrument, settings, returns, frequencies_padded, carrier_padded, frame_start, key,
                   *, num_frames: int, effects: tuple[str, ...]):
     f = jax.lax.dynamic_slice(frequencies_padded, (frame_start,), (num_frames,))
