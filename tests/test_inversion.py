@@ -3,6 +3,7 @@ harmonics, turbulence, precision paths, bad pixels, and the CLI end to end."""
 
 import h5py
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -355,7 +356,6 @@ def test_polish_converges_in_few_newton_steps_and_never_reports_a_maximum_as_con
     start a sixth of a ripple off lands in ≤ 5 steps to the floor tolerance even where the
     residuals are noisy (Gauss–Newton is linear there); a start past the ripple's inflection
     climbs to the maximum, which must be flagged, not reported as a fit."""
-    import jax.numpy as jnp
 
     from cohflash_jax.estimate.ml import descended, polish_depth
 
@@ -384,7 +384,6 @@ def test_straggler_pass_gives_each_pixel_its_uninterrupted_polish():
     a time (`refine_ml_uniform`). Each pixel must end exactly as an uninterrupted polish ends
     it — same steps, same convergence, same depth — whatever its batch: 96 low-SNR pixels
     (up to three straggler groups, and empty slots), synthetic windows of the phase-locked model."""
-    import jax.numpy as jnp
 
     from cohflash_jax.estimate.ml import STRAGGLER_GROUP, UniformModel, grid_for, refine_ml_uniform, window_tables
     from cohflash_jax.modulator import MZM
@@ -447,7 +446,6 @@ def test_system_delay_moves_the_unambiguous_window_and_depths_stay_exact(system_
 def _two_kernel_tone(model, depth, tables):
     """Σ_n w_n (e^{iθ_n} D(x_n) + e^{−iθ_n} D(−x_n)) over the window: the tone column written
     out with `dirichlet_window`, two kernels an order (the reference for `tone_column`)."""
-    import jax.numpy as jnp
 
     from cohflash_jax.estimate import ml
 
@@ -465,7 +463,6 @@ def test_tone_column_equals_the_two_dirichlet_kernels_of_each_order():
     """`UniformModel.tone_column` folds each order's e^{iθ}D(x) + e^{−iθ}D(−x) into one pass;
     it must equal the two kernels evaluated apart (`dirichlet_window`), on and off a bin, with
     finite first and second derivatives on a bin (Newton differentiates it twice)."""
-    import jax.numpy as jnp
 
     from cohflash_jax.estimate import ml
 
@@ -489,7 +486,6 @@ def test_dirichlet_kernel_phasor_shift_and_grid_orders_against_direct_evaluation
     """The closed-form kernel equals the DFT sum it stands for; rotating a depth's phasors by
     `rotation(δ)` equals the phasors at depth + δ (the polish and the grid move by rotation);
     the basin grid keeps the orders of at least 1 % of the dominant weight."""
-    import jax.numpy as jnp
 
     from cohflash_jax.estimate import ml
 
@@ -537,7 +533,6 @@ def test_fits_that_trade_depth_against_the_offset_near_dc_are_flagged():
     flagged; the others are exact to 1 µm."""
     from pathlib import Path
 
-    import jax.numpy as jnp
 
     from cohflash_experiments.precision_table import ten_hz_mode
     from cohflash_jax.estimate import ml
@@ -629,3 +624,33 @@ def test_slow_drift_without_an_echo_is_not_reported_as_a_target():
 
     assert np.sum(out["fit_status"] == DC_EDGE) >= 16  # the ones that passed every other check
     assert np.all((out["depth_m"] >= 0) & (out["depth_m"] < sweep.ambiguity_m))
+
+
+def test_async_filter_jit_keeps_filter_jit_semantics():
+    """`runtime.async_filter_jit` (the reconstruct programs' jit, which does not wait for its
+    result as `eqx.filter_jit` does): non-array arguments, keyword ones included, are static
+    — a Python branch on them works and a new value recompiles — and arrays are traced."""
+    import equinox as eqx
+
+    from cohflash_jax.runtime import async_filter_jit
+
+    class Settings(eqx.Module):
+        scale: jax.Array
+        power: int = eqx.field(static=True)
+        offset: float = 0.0  # a plain float leaf: static, as eqx.filter_jit treats it
+
+    traces = []
+
+    def f(settings, x, *, negate: bool):
+        traces.append(1)
+        y = settings.scale * x ** settings.power + settings.offset
+        return -y if negate else y
+
+    g = async_filter_jit(f)
+    x = jnp.arange(4.0)
+    s = Settings(jnp.asarray(2.0), 2, 1.0)
+    np.testing.assert_allclose(g(s, x, negate=True), -(2 * x**2 + 1))
+    np.testing.assert_allclose(g(s, x + 1, negate=True), -(2 * (x + 1) ** 2 + 1))
+    assert len(traces) == 1  # same shapes and statics: compiled once
+    np.testing.assert_allclose(g(Settings(jnp.asarray(2.0), 2, 3.0), x, negate=False), 2 * x**2 + 3)
+    assert len(traces) == 2
