@@ -258,11 +258,12 @@ def run_pixels(capture, pixels, options, *, seed: int = 0, max_steps: int = 2000
     frames = np.stack([capture.frames[:, :, r, c] for r, c in pixels], axis=-1)  # (4, N, P)
     data = pixel_data(cfg, jnp.asarray(frames))
     status = np.asarray(data.status)
-    skipped = [(r, c, STATUS[int(status[p])]) for p, (r, c) in enumerate(pixels) if status[p] in UNUSABLE_DATA]
-    if len(skipped) == len(pixels):
+    unusable = np.isin(status, UNUSABLE_DATA)
+    skipped = [(*pixels[p], STATUS[int(status[p])]) for p in np.flatnonzero(unusable)]
+    usable = np.flatnonzero(~unusable)
+    if not usable.size:
         raise ValueError("no pixel with usable data: " + ", ".join(f"({r}, {c}) {why}" for r, c, why in skipped[:10])
                          + (" …" if len(skipped) > 10 else ""))
-    usable = [p for p in range(len(pixels)) if status[p] not in UNUSABLE_DATA]
     rng = np.random.default_rng(seed)
     results = []
     for p in tqdm(usable, unit="px", desc="posterior", disable=not progress):
