@@ -1,0 +1,205 @@
+"""Maximum-likelihood depth for short uniform sweeps (the 10 Hz mode), from a tone table.
+
+Over all N frames the phase-locked model r[m] = c + A·t(d)[m], t(d)[m] = Σ_{n≥1} 2 w_n
+cos(2π n f_m τ(d)), is the same for every pixel. So for a short sweep its tone is tabulated
+once, on a depth grid over the unambiguous window, with its first K depth derivatives
+(`ToneTable`). A pixel's fit then needs no trigonometry:
+
+1. basin search: the projected likelihood on the grid, (y·t̂_g)² for the mean-removed data y
+   and unit tones t̂_g, is one matrix product for a whole tile; the best point within the
+   coarse stage's ±half-width (as `estimate.ml`'s grid) is picked;
+2. polish: about that point t(d_g + u·s) = Σ_j u^j/j!·R_j (R_j = s^j ∂^j t/∂d^j, spacing s) is a
+   polynomial in u, so the projected cost −(y·t)²/|t|² is a ratio of polynomials whose
+   coefficients are K+1 dot products a pixel; Newton's method (`polish_depth`) runs on it;
+3. the final fit, σ from the Fisher information and the well-posedness checks, in the time
+   domain over every frame (exact ML, not a DFT window).
+
+The grid spacing keeps the Taylor remainder below `TAYLOR_TOLERANCE` of the tone within
+±half a spacing (`table_spacing_m`). Measured on the 35-frame 10 Hz mode: see
+`reconstruct.TABLE_MAX_FRAMES`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ..constants import SPEED_OF_LIGHT_M_PER_S as C
+from .coarse import first_argmax
+from .ml import (MAX_VARIANCE_INFLATION, STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA, FitResult, UniformModel,
+                 phase_locked_sigma_m, polish_depth, tone_cancels_offset, variance_inflation)
+
+TAYLOR_ORDER = 6  # derivatives tabulated per grid depth (K)
+TAYLOR_TOLERANCE = 1e-6  # Taylor remainder at half a spacing, relative to the dominant tone
+POINTS_PER_COST_RIPPLE = 6  # the projected cost ripples with period c/(4 f̄) (signed amplitude)
+MAX_POLISH_SPACINGS = 1.0  # a polish that moves further from its grid point is not trusted
+
+
+def table_spacing_m(frequencies_hz, weights, order: int = TAYLOR_ORDER, tolerance: float = TAYLOR_TOLERANCE) -> float:
+    """Grid spacing (m): the largest at which each order's Taylor remainder over half a
+    spacing, (n·κ_max·s/2)^(K+1)/(K+1)!·|w_n|/max|w|, sums to at most `tolerance`
+    (κ_max = 4π f_max/c), and no more than a sixth of the projected cost's ripple c/(4 f̄)."""
+    f = np.asarray(frequencies_hz, np.float64)
+    w = np.abs(np.asarray(weights, np.float64))[1:]
+    rel = w / max(w.max(), 1e-300)
+    kappa = 4 * math.pi * f.max() / C
+    orders = np.arange(1, w.size + 1)
+
+    def remainder(s):
+        return float(np.sum(rel * (orders * kappa * s / 2) ** (order + 1)) / math.factorial(order + 1))
+
+    lo, hi = 0.0, C / (4 * f.mean()) / POINTS_PER_COST_RIPPLE
+    if remainder(hi) <= tolerance:
+        return hi
+    for _ in range(60):  # bisection: the remainder grows monotonically with s
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if remainder(mid) <= tolerance else (lo, mid)
+    return lo
+
+
+def table_points(depth_range_m: tuple[float, float], spacing_m: float) -> int:
+    return int(math.ceil((depth_range_m[1] - depth_range_m[0]) / spacing_m)) + 1
+
+
+class ToneTable(eqx.Module):
+    """The tone t(d) and its scaled depth derivatives R_j = s^j ∂^j t/∂d^j on a depth grid
+    d_g = start + g·s. `unit_tones` (N, G) float32: mean-removed t, unit norm (the basin
+    search's matrix); `rows` (G, K+1, N) float32: mean-removed R_j; `means` (G, K+1): the
+    R_j's means over frames; `norm_coeffs` (G, 2K+1): coefficients of |Σ_j u^j/j!·R_j|² in u
+    (mean-removed, from the float32 rows)."""
+
+    unit_tones: Float[Array, "N G"]
+    rows: Float[Array, "G K1 N"]
+    means: Float[Array, "G K1"]
+    norm_coeffs: Float[Array, "G K2"]
+    start_m: float = eqx.field(static=True)
+    spacing_m: float = eqx.field(static=True)
+
+    @property
+    def num_points(self) -> int:
+        return self.rows.shape[0]
+
+
+def build_tone_table(frequencies_hz, weights, system_delay_s: float, depth_range_m: tuple[float, float],
+                     spacing_m: float, order: int = TAYLOR_ORDER) -> ToneTable:
+    """`ToneTable` over [depth_range_m] (NumPy, float64; the phases reduced modulo 2π)."""
+    f = np.asarray(frequencies_hz, np.float64)
+    w = np.asarray(weights, np.float64)
+    depths = depth_range_m[0] + spacing_m * np.arange(table_points(depth_range_m, spacing_m))
+    tau = system_delay_s + 2 * depths / C  # (G,)
+    kappa_s = 4 * math.pi * f * spacing_m / C  # phase per spacing of the first order, (N,)
+    rows = np.zeros((depths.size, order + 1, f.size))
+    for n in range(1, w.size):
+        cycles = n * tau[:, None] * f[None, :]
+        phase = 2 * math.pi * (cycles - np.floor(cycles))  # (G, N)
+        for j in range(order + 1):  # ∂^j cos φ = (∂φ)^j·cos(φ + jπ/2)
+            rows[:, j] += 2 * w[n] * (n * kappa_s) ** j * np.cos(phase + j * math.pi / 2)
+    means = rows.mean(axis=-1)
+    centred = (rows - means[..., None]).astype(np.float32)
+    exact = centred.astype(np.float64)
+    inv_fact = 1 / np.array([math.factorial(j) for j in range(order + 1)], np.float64)
+    gram = np.einsum("gim,gjm->gij", exact, exact) * inv_fact[None, :, None] * inv_fact[None, None, :]
+    coeffs = np.zeros((depths.size, 2 * order + 1))
+    for i in range(order + 1):
+        for j in range(order + 1):
+            coeffs[:, i + j] += gram[:, i, j]
+    norm0 = np.sqrt(np.maximum(coeffs[:, 0], 1e-300))
+    unit = (exact[:, 0] / norm0[:, None]).T.astype(np.float32)
+    return ToneTable(jnp.asarray(unit), jnp.asarray(centred), jnp.asarray(means), jnp.asarray(coeffs),
+                     float(depth_range_m[0]), float(spacing_m))
+
+
+def _poly(coeffs, u):
+    """Σ_k coeffs[..., k]·u^k (Horner; coefficients on the last axis)."""
+    acc = coeffs[..., -1]
+    for k in range(coeffs.shape[-1] - 2, -1, -1):
+        acc = acc * u + coeffs[..., k]
+    return acc
+
+
+def _taylor(rows, u):
+    """Σ_j u^j/j!·rows[j] and its derivative in u (rows: (K+1, ...))."""
+    k1 = rows.shape[0]
+    value = sum(u**j / math.factorial(j) * rows[j] for j in range(k1))
+    slope = sum(u ** (j - 1) / math.factorial(j - 1) * rows[j] for j in range(1, k1))
+    return value, slope
+
+
+def refine_ml_table(table: ToneTable, model: UniformModel, r: Float[Array, "N P"], coarse_depth_m: Float[Array, " P"],
+                    noise_var: Float[Array, " P"], *, half_width_m: float, max_steps: int,
+                    prefer_positive: bool = False) -> FitResult:
+    """ML depth of each pixel of the carrier-aligned sequences r (N, P) from `table`: the
+    basin search within ±`half_width_m` of the coarse depth, the polish, the final fit.
+    `prefer_positive`: pick the best grid point with a positive amplitude where there is one
+    (where ripples are narrower than a bin; the carrier alignment makes A·w_0 > 0)."""
+    n = r.shape[0]
+    y64 = r.astype(jnp.float64)
+    mean_r = jnp.mean(y64, axis=0)
+    y = y64 - mean_r  # (N, P)
+    # 1. basin search: one matrix product (float32 suffices to rank grid points)
+    scores = y.astype(jnp.float32).T @ table.unit_tones  # (P, G)
+    g_count = table.num_points
+    s = table.spacing_m
+    lo = jnp.ceil((coarse_depth_m - half_width_m - table.start_m) / s).astype(jnp.int32)
+    hi = jnp.floor((coarse_depth_m + half_width_m - table.start_m) / s).astype(jnp.int32)
+    idx = jnp.arange(g_count, dtype=jnp.int32)
+    inside = (idx >= lo[:, None]) & (idx <= hi[:, None])
+    magnitude = jnp.where(inside, jnp.abs(scores), -1.0)
+    best = first_argmax(magnitude)
+    if prefer_positive:
+        signed = jnp.where(inside, scores, -1.0)
+        best_signed = first_argmax(signed)
+        has_positive = jnp.take_along_axis(signed, best_signed[:, None], axis=-1)[:, 0] > 0
+        best = jnp.where(has_positive, best_signed, best)
+    # 2. polish: b(u) = y·t(u) and |t(u)|² are polynomials in u
+    rows = jnp.take(table.rows, best, axis=0).astype(jnp.float64)  # (P, K+1, N)
+    rows_t = jnp.moveaxis(rows, 1, 0)  # (K+1, P, N)
+    dots = jnp.einsum("jpm,mp->pj", rows_t, y)  # (P, K+1)
+    k1 = rows.shape[1]
+    inv_fact = np.array([1 / math.factorial(j) for j in range(k1)])
+    b_coeffs = dots * inv_fact
+    norm_coeffs = jnp.take(table.norm_coeffs, best, axis=0)  # (P, 2K+1)
+    ridge = 1e-12 * norm_coeffs[:, 0] + 1e-300
+    data_sq = jnp.sum(y * y, axis=0)
+    # the polish's step tolerance from the phase-locked bound, with the tone's amplitude taken
+    # from the data's energy (|y|² ≈ N·a²/2; noise makes it an overestimate: a finer tolerance)
+    tone_amp = jnp.sqrt(2 * data_sq / n)
+    sigma_pred_mm = 1e3 * phase_locked_sigma_m(model.sum_angular_frequency_sq(), tone_amp, noise_var)
+    tolerance_u = jnp.maximum(STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA * sigma_pred_mm) / (1e3 * s)
+
+    def polish(b_c, n_c, rid, tol):
+        gain = lambda u: _poly(b_c, u) ** 2 / (_poly(n_c, u) + rid)
+        u, solved, steps = polish_depth(lambda u: -gain(u), jnp.zeros(()), max_steps=max_steps, tolerance_mm=tol)
+        return u, solved & (gain(u) >= gain(jnp.zeros(())) * (1 - 1e-9)), steps
+
+    u, solved, num_steps = jax.vmap(polish)(b_coeffs, norm_coeffs, ridge, tolerance_u)
+    within = jnp.abs(u) <= MAX_POLISH_SPACINGS
+    u = jnp.clip(u, -MAX_POLISH_SPACINGS, MAX_POLISH_SPACINGS)
+    # 3. the final fit over every frame
+    tone, tone_u = _taylor(rows_t, u[:, None])  # (P, N) each, mean-removed
+    means = jnp.take(table.means, best, axis=0)  # (P, K+1)
+    mean_tone, mean_tone_u = _taylor(means.T, u)
+    tone_sq = jnp.sum(tone * tone, axis=-1) + ridge
+    amp = jnp.sum(tone * y.T, axis=-1) / tone_sq
+    residual = y.T - amp[:, None] * tone
+    cost = jnp.sum(residual * residual, axis=-1)
+    offset = mean_r - amp * mean_tone
+    # Fisher information of (depth, c, A), per unit noise variance: c is eliminated exactly by
+    # the mean-removed columns, A by the Schur complement; ∂t/∂d = (∂t/∂u)/s
+    du_sq = jnp.sum(tone_u * tone_u, axis=-1)
+    f_dd_centred = amp**2 * du_sq / s**2
+    f_da = amp * jnp.sum(tone_u * tone, axis=-1) / s
+    schur_unit = f_dd_centred - f_da**2 / tone_sq
+    schur = schur_unit / jnp.maximum(noise_var, 1e-30)
+    sigma = jnp.where(schur > 0, 1 / jnp.sqrt(jnp.maximum(schur, 1e-300)), jnp.inf)
+    f_dd = amp**2 * (du_sq + n * mean_tone_u**2) / s**2
+    well_posed = ~tone_cancels_offset(amp, tone_sq + n * mean_tone**2, data_sq + n * mean_r**2) & (
+        variance_inflation(f_dd, schur_unit) <= MAX_VARIANCE_INFLATION)
+    depth = table.start_m + s * (best.astype(jnp.float64) + u)
+    converged = solved & within & jnp.isfinite(cost)
+    return FitResult(depth, offset, amp, sigma, converged, num_steps, cost, well_posed)
