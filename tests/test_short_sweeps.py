@@ -191,3 +191,22 @@ def test_table_fit_where_ripples_are_narrower_than_a_bin():
     crlb = crlb_phase_locked_m(f, tone_amp, noise_sigma)
     assert valid.all() and np.max(np.abs(depth - target)) < 5 * crlb  # no slip
     assert np.std(depth - target) == pytest.approx(crlb, rel=0.2)
+
+
+def test_table_fit_flags_dead_nan_and_signal_free_pixels_without_nan(comb):
+    """Through the table path: a dead pixel, a pixel with a NaN frame, one with no echo (noise
+    only) and one of zero amplitude and zero noise are flagged, every output finite."""
+    from cohflash_jax.reconstruct import BAD_DATA, DEAD
+
+    inst, _ = comb
+    f = inst.sweep.frequencies_hz
+    rng = np.random.default_rng(3)
+    frames = 400 + rng.normal(0, 3.0, (4, N, 1, 4)).astype(np.float32)
+    frames[:, :, 0, 0] = 400.0  # dead
+    frames[1, 7, 0, 1] = np.nan  # corrupt frame
+    frames[:, :, 0, 3] = 400.0 + np.arange(4)[:, None]  # constant per CCD, no noise: dead too
+    out = reconstruct_array(frames, f, ML)
+    for k, v in out.items():
+        assert np.all(np.isfinite(v)), k
+    assert not out["valid"].any()
+    assert out["fit_status"][0, 0] == DEAD and out["fit_status"][0, 1] == BAD_DATA and out["fit_status"][0, 3] == DEAD

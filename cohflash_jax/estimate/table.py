@@ -178,8 +178,9 @@ def refine_ml_table(table: ToneTable, model: UniformModel, r: Float[Array, "N P"
         return u, solved & (gain(u) >= gain(jnp.zeros(())) * (1 - 1e-9)), steps
 
     u, solved, num_steps = jax.vmap(polish)(b_coeffs, norm_coeffs, ridge, tolerance_u)
-    within = jnp.abs(u) <= MAX_POLISH_SPACINGS
-    u = jnp.clip(u, -MAX_POLISH_SPACINGS, MAX_POLISH_SPACINGS)
+    # a data-free pixel (dead, or zeroed NaN frames) has a flat cost and a NaN Newton step
+    within = jnp.isfinite(u) & (jnp.abs(u) <= MAX_POLISH_SPACINGS)
+    u = jnp.where(jnp.isfinite(u), jnp.clip(u, -MAX_POLISH_SPACINGS, MAX_POLISH_SPACINGS), 0.0)
     # 3. the final fit over every frame
     tone, tone_u = _taylor(rows_t, u[:, None])  # (P, N) each, mean-removed
     means = jnp.take(table.means, best, axis=0)  # (P, K+1)
