@@ -26,6 +26,9 @@ from pathlib import Path
 
 def child_reconstruct(capture: str, method: str, out: str) -> dict:
     from cohflash_jax.cli import run_reconstruct
+    from cohflash_jax.runtime import use_cpu_streams
+
+    use_cpu_streams()  # as `cohflash` does first thing
     from cohflash_jax.reconstruct import ReconstructOptions
 
     times = []
@@ -82,6 +85,9 @@ def child_ten_hz() -> dict:
     target at 30.5 m with 10× the paper's probe power (`cohflash_experiments.precision_table.
     ten_hz_mode`), about the SNR threshold (at the paper's power the pixels are flagged
     low-SNR). Full frame (256×320), in memory; per depth map after compilation."""
+    from cohflash_jax.runtime import use_cpu_streams
+
+    use_cpu_streams()  # as `cohflash` does first thing
     import jax
     import numpy as np
 

@@ -12,7 +12,7 @@ import numpy as np
 from cohflash_jax.design import PARAMETERS
 from cohflash_jax.fileio import require_output_folders
 from cohflash_jax.reconstruct import DEFAULT_SNR_THRESHOLD_DB
-from cohflash_jax.runtime import enable_compilation_cache
+from cohflash_jax.runtime import enable_compilation_cache, use_cpu_streams
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -560,6 +560,7 @@ def main(argv=None) -> int:
     if getattr(args, "snr_threshold_db", 0) is None:
         args.snr_threshold_db = DEFAULT_SNR_THRESHOLD_DB
     enable_compilation_cache()
+    use_cpu_streams()
     try:
         check_output_paths(args)
         return args.func(args)

@@ -517,30 +517,45 @@ def aligned_copy(view: np.ndarray, width: int) -> np.ndarray:
     return out
 
 
+def stream_devices() -> list:
+    """The devices sub-tiles are spread over, in turn: every local CPU device where JAX has
+    several (`runtime.use_cpu_streams`), else the default device alone. One CPU device runs
+    its programs one at a time, and the serial stretches of a program (the ML polish's Newton
+    loop on a few hundred pixels) leave the other cores idle; two devices run two sub-tiles'
+    programs at once."""
+    devices = jax.local_devices()
+    return devices if devices[0].platform == "cpu" else devices[:1]
+
+
 def dispatch_tile(cfg: TileConfig, frames, dark=None, data_status=None, gain=None, sub_px: int | None = None,
                   carrier_phase_rad=None):
     """`process_tile` over a tile (4, N, P) in sub-tiles of `sub_px` pixels, each dispatched
-    asynchronously (the last padded to the same shape: one compilation). Returns the
-    per-sub-tile result dicts; `gather_tile` joins them."""
+    asynchronously (the last padded to the same shape: one compilation), in turn on each of
+    `stream_devices`. Returns the per-sub-tile result dicts; `gather_tile` joins them."""
     p = frames.shape[-1]
     sub = p if sub_px is None else min(sub_px, p)
     pieces = -(-p // sub)
+    devices = stream_devices()
+    on_device = lambda tree, device: jax.tree.map(lambda x: jax.device_put(x, device) if eqx.is_array(x) else x, tree)
+    configs = [on_device((cfg, carrier_phase_rad), d) for d in devices] if len(devices) > 1 else [(cfg, carrier_phase_rad)]
 
-    def piece(arr, k):
+    def piece(arr, k, device):
         if arr is None:
             return None
         part = arr[..., k * sub:(k + 1) * sub]
         if isinstance(part, np.ndarray):  # one host copy at most (none for a whole contiguous tile)
             whole = part.shape[-1] == sub and part.flags.c_contiguous
-            return jax.device_put(part if whole else aligned_copy(part, sub))
+            return jax.device_put(part if whole else aligned_copy(part, sub), device)
         if part.shape[-1] < sub:
             part = jnp.pad(part, [(0, 0)] * (part.ndim - 1) + [(0, sub - part.shape[-1])])
-        return part
+        return part if len(devices) == 1 else jax.device_put(part, device)
 
     out = []
     for k in range(pieces):
-        out.append(process_tile(cfg, piece(frames, k), piece(dark, k), piece(data_status, k), piece(gain, k),
-                                carrier_phase_rad))
+        device = devices[k % len(devices)] if len(devices) > 1 else None
+        tile_cfg, carrier = configs[k % len(configs)]
+        out.append(process_tile(tile_cfg, piece(frames, k, device), piece(dark, k, device),
+                                piece(data_status, k, device), piece(gain, k, device), carrier))
     return out, p
 
 

@@ -37,6 +37,20 @@ def async_filter_jit(fun):
     return call
 
 
+def use_cpu_streams(count: int = 2) -> int:
+    """Give JAX `count` CPU devices, over which a reconstruction spreads its sub-tiles
+    (`reconstruct.stream_devices`), so that two sub-tiles' programs run at once. Takes effect
+    only before JAX's first computation in the process (the CLI calls it first thing);
+    afterwards it changes nothing. Returns the number of CPU devices in force."""
+    import jax
+
+    try:
+        jax.config.update("jax_num_cpu_devices", int(count))
+    except RuntimeError:  # JAX already initialised its backends: keep what it has
+        pass
+    return len(jax.devices("cpu"))
+
+
 def retain_freed_memory(threshold_bytes: int = 1 << 30) -> bool:
     """Ask glibc to serve blocks below `threshold_bytes` from its heap and to keep freed
     memory for reuse, instead of mapping each large block afresh and unmapping it on free.

@@ -10,6 +10,10 @@ import cohflash_jax as cf
 
 # the CLI keeps compiled programs in ~/.cache/cohflash/jax; tests stay hermetic
 os.environ.setdefault("COHFLASH_JAX_CACHE", "off")
+# JAX's backends start now, with one CPU device: the CLI's `use_cpu_streams` (run by tests that
+# call `cohflash` in-process) then changes nothing, and every test compiles for one device; the
+# two-device path has a test of its own, in a subprocess (test_short_sweeps)
+jax.devices()
 
 N_FRAMES = 3000  # the paper's sweep: keeps Δf, bin width and ripple as in the paper
 PIXELS = (8, 8)

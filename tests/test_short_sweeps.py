@@ -210,3 +210,38 @@ def test_table_fit_flags_dead_nan_and_signal_free_pixels_without_nan(comb):
         assert np.all(np.isfinite(v)), k
     assert not out["valid"].any()
     assert out["fit_status"][0, 0] == DEAD and out["fit_status"][0, 1] == BAD_DATA and out["fit_status"][0, 3] == DEAD
+
+
+def test_two_cpu_streams_give_the_same_bits(comb, tmp_path):
+    """The CLI gives JAX two CPU devices and deals sub-tiles out to them in turn
+    (`runtime.use_cpu_streams`, `reconstruct.stream_devices`), so that two programs run at once.
+    A process with two devices must reconstruct the same frames to the same bits as this one."""
+    import subprocess
+    import sys
+
+    from cohflash_jax.reconstruct import dispatch_tile, gather_tile
+
+    inst, cfg = comb
+    frames = np.asarray(cf.simulate(cf.planar(reflectance=0.5, effects=("shot_noise", "read_noise")), inst, 8, 8,
+                                    jax.random.key(5))).reshape(4, N, 64)
+    np.save(tmp_path / "frames.npy", frames)
+    script = f"""
+import numpy as np
+from cohflash_jax.runtime import use_cpu_streams
+assert use_cpu_streams(2) == 2
+import jax
+from cohflash_experiments.precision_table import ten_hz_mode
+import cohflash_jax as cf
+from cohflash_jax.hybrid import Hybrid
+from cohflash_jax.reconstruct import ReconstructOptions, build_config, dispatch_tile, gather_tile, stream_devices
+assert len(stream_devices()) == 2
+cfg = build_config(ten_hz_mode().sweep.frequencies_hz, Hybrid(), cf.MZM(), 0.0, None, ReconstructOptions(method="ml"))
+out = gather_tile(dispatch_tile(cfg, np.load({str(tmp_path / "frames.npy")!r}), sub_px=16))
+np.savez({str(tmp_path / "two.npz")!r}, **out)
+"""
+    subprocess.run([sys.executable, "-c", script], check=True)
+    one = gather_tile(dispatch_tile(cfg, frames, sub_px=16))
+    two = np.load(tmp_path / "two.npz")
+    assert set(two.files) == set(one) and one["valid"].sum() > 10
+    for key, value in one.items():
+        np.testing.assert_array_equal(two[key], value, err_msg=key)
