@@ -530,7 +530,7 @@ def stream_devices() -> list:
 def dispatch_tile(cfg: TileConfig, frames, dark=None, data_status=None, gain=None, sub_px: int | None = None,
                   carrier_phase_rad=None):
     """`process_tile` over a tile (4, N, P) in sub-tiles of `sub_px` pixels, each dispatched
-    asynchronously (the last padded to the same shape: one compilation), in turn on each of
+    asynchronously (the last padded to the same shape: one compilation per device), in turn on each of
     `stream_devices`. Returns the per-sub-tile result dicts; `gather_tile` joins them."""
     p = frames.shape[-1]
     sub = p if sub_px is None else min(sub_px, p)
