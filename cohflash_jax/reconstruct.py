@@ -527,6 +527,22 @@ def stream_devices() -> list:
     return devices if devices[0].platform == "cpu" else devices[:1]
 
 
+_placed: list = []  # the last (cfg, carrier, devices, their copies) of `_configs_on_devices`
+
+
+def _configs_on_devices(cfg: TileConfig, carrier_phase_rad, devices: tuple) -> list:
+    """(cfg, carrier) committed to each of `devices` — copied once per reconstruction, not once
+    per tile: the last placement is kept and reused while the same objects come back."""
+    if len(devices) == 1:
+        return [(cfg, carrier_phase_rad)]
+    if _placed and _placed[0] is cfg and _placed[1] is carrier_phase_rad and _placed[2] == devices:
+        return _placed[3]
+    put = lambda tree, device: jax.tree.map(lambda x: jax.device_put(x, device) if eqx.is_array(x) else x, tree)
+    configs = [put((cfg, carrier_phase_rad), d) for d in devices]
+    _placed[:] = [cfg, carrier_phase_rad, devices, configs]
+    return configs
+
+
 def dispatch_tile(cfg: TileConfig, frames, dark=None, data_status=None, gain=None, sub_px: int | None = None,
                   carrier_phase_rad=None):
     """`process_tile` over a tile (4, N, P) in sub-tiles of `sub_px` pixels, each dispatched
@@ -536,8 +552,7 @@ def dispatch_tile(cfg: TileConfig, frames, dark=None, data_status=None, gain=Non
     sub = p if sub_px is None else min(sub_px, p)
     pieces = -(-p // sub)
     devices = stream_devices()
-    on_device = lambda tree, device: jax.tree.map(lambda x: jax.device_put(x, device) if eqx.is_array(x) else x, tree)
-    configs = [on_device((cfg, carrier_phase_rad), d) for d in devices] if len(devices) > 1 else [(cfg, carrier_phase_rad)]
+    configs = _configs_on_devices(cfg, carrier_phase_rad, tuple(devices))
 
     def piece(arr, k, device):
         if arr is None:

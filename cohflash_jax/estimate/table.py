@@ -102,7 +102,7 @@ def build_tone_table(frequencies_hz, weights, system_delay_s: float, depth_range
     means = rows.mean(axis=-1)
     centred = (rows - means[..., None]).astype(np.float32)
     exact = centred.astype(np.float64)
-    inv_fact = 1 / np.array([math.factorial(j) for j in range(order + 1)], np.float64)
+    inv_fact = inverse_factorials(order + 1)
     gram = np.einsum("gim,gjm->gij", exact, exact) * inv_fact[None, :, None] * inv_fact[None, None, :]
     coeffs = np.zeros((depths.size, 2 * order + 1))
     for i in range(order + 1):
@@ -112,6 +112,11 @@ def build_tone_table(frequencies_hz, weights, system_delay_s: float, depth_range
     unit = (exact[:, 0] / norm0[:, None]).T.astype(np.float32)
     return ToneTable(jnp.asarray(unit), jnp.asarray(centred), jnp.asarray(means), jnp.asarray(coeffs),
                      float(depth_range_m[0]), float(spacing_m))
+
+
+def inverse_factorials(count: int) -> np.ndarray:
+    """1/j! for j < count (the Taylor sums' weights)."""
+    return np.array([1 / math.factorial(j) for j in range(count)])
 
 
 def _poly(coeffs, u):
@@ -161,8 +166,7 @@ def refine_ml_table(table: ToneTable, model: UniformModel, r: Float[Array, "N P"
     rows_t = jnp.moveaxis(rows, 1, 0)  # (K+1, P, N)
     dots = jnp.einsum("jpm,mp->pj", rows_t, y)  # (P, K+1)
     k1 = rows.shape[1]
-    inv_fact = np.array([1 / math.factorial(j) for j in range(k1)])
-    b_coeffs = dots * inv_fact
+    b_coeffs = dots * inverse_factorials(k1)
     norm_coeffs = jnp.take(table.norm_coeffs, best, axis=0)  # (P, 2K+1)
     ridge = 1e-12 * norm_coeffs[:, 0] + 1e-300
     data_sq = jnp.sum(y * y, axis=0)
