@@ -1,12 +1,12 @@
 # Two commands do all the set-up on a fresh machine:
 #   make demo   -> creates .venv, installs cohflash, runs the demo on the built-in staircase scene
-#   make test   -> creates .venv, installs cohflash with test extras, runs the test suite
+#   make test   -> creates .venv, installs cohflash with test extras, runs the linter and the test suite
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.cohflash-installed
 
-.PHONY: demo test bench clean
+.PHONY: demo test lint format bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,8 +17,16 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/cohflash demo --out out/demo
 
-test: $(STAMP)
+test: lint
 	$(PY) -m pytest -q -n 2 --dist load
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+format: $(STAMP)
+	$(VENV)/bin/ruff format .
+	$(VENV)/bin/ruff check --fix .
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_simulate.py

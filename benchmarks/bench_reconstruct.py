@@ -34,10 +34,14 @@ def child_reconstruct(capture: str, method: str, out: str) -> dict:
     times = []
     for _ in range(2):
         t0 = time.perf_counter()
-        outputs, _ = run_reconstruct(capture, out, ReconstructOptions(method=method, progress=False))
+        outputs = run_reconstruct(capture, out, ReconstructOptions(method=method, progress=False)).outputs
         times.append(time.perf_counter() - t0)
-    return {"cold": times[0], "warm": times[1], "valid": float(outputs["valid"].mean()),
-            "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
+    return {
+        "cold": times[0],
+        "warm": times[1],
+        "valid": float(outputs["valid"].mean()),
+        "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
+    }
 
 
 def child_references(capture: str) -> dict:
@@ -52,8 +56,8 @@ def child_references(capture: str) -> dict:
         n, h, w = frames.shape[1:]
         i = np.empty((n, h * w), np.float32)
         for r0 in range(0, h, 32):  # I = V0 − V2, read in row tiles
-            block = frames[:, :, r0:r0 + 32].astype(np.float32)
-            i[:, r0 * w:(r0 + block.shape[2]) * w] = (block[0] - block[2]).reshape(n, -1)
+            block = frames[:, :, r0 : r0 + 32].astype(np.float32)
+            i[:, r0 * w : (r0 + block.shape[2]) * w] = (block[0] - block[2]).reshape(n, -1)
     t_read = time.perf_counter() - t0
     res = {"read_and_iq_s": t_read}
     numpy_times = []
@@ -82,9 +86,9 @@ def child_ten_hz() -> dict:
     """The paper's 10 Hz mode: 35 frames at 350 Hz over the full band, here 0.17–6 GHz with
     f_0 = Δf = 171.4 MHz (a harmonic comb: the phase-locked model is then periodic in delay
     with period 1/Δf, so depths wrap cleanly into the c/(4Δf) = 0.44 m interval). Planar
-    target at 30.5 m with 10× the paper's probe power (`cohflash_experiments.precision_table.
-    ten_hz_mode`), about the SNR threshold (at the paper's power the pixels are flagged
-    low-SNR). Full frame (256×320), in memory; per depth map after compilation."""
+    target at 30.5 m with 10× the paper's probe power (`Instrument.ten_hz_mode`), about the
+    SNR threshold (at the paper's power the pixels are flagged low-SNR). Full frame (256×320),
+    in memory; per depth map after compilation."""
     from cohflash_jax.runtime import use_cpu_streams
 
     use_cpu_streams()  # as `cohflash` does first thing
@@ -92,17 +96,19 @@ def child_ten_hz() -> dict:
     import numpy as np
 
     import cohflash_jax as cf
-    from cohflash_experiments.precision_table import ten_hz_mode
     from cohflash_jax.reconstruct import ReconstructOptions, reconstruct_array
     from cohflash_jax.scenes import planar
 
-    inst = ten_hz_mode()
-    sweep = inst.sweep
-    frames = np.asarray(cf.simulate(planar(effects=("shot_noise", "read_noise", "quantization", "sidebands")),
-                                    inst, 256, 320, jax.random.key(0)))
+    inst = cf.Instrument.ten_hz_mode()
+    frames = np.asarray(
+        cf.simulate(
+            planar(effects=("shot_noise", "read_noise", "quantization", "sidebands")), inst, 256, 320, jax.random.key(0)
+        )
+    )
     res = {}
     for method in ("dft", "ml"):
-        run = lambda: reconstruct_array(frames, sweep.frequencies_hz, ReconstructOptions(method=method, progress=False))
+        options = ReconstructOptions(method=method, progress=False)
+        run = lambda options=options: reconstruct_array(frames, inst, options)
         out = run()
         times = []
         for _ in range(5):
@@ -128,30 +134,49 @@ def main():
     args = p.parse_args()
     if args.child is not None:
         kind, *rest = args.child
-        out = {"reconstruct": lambda: child_reconstruct(*rest), "references": lambda: child_references(*rest),
-               "ten_hz": child_ten_hz}[kind]()
+        out = {
+            "reconstruct": lambda: child_reconstruct(*rest),
+            "references": lambda: child_references(*rest),
+            "ten_hz": child_ten_hz,
+        }[kind]()
         print(json.dumps(out))
         return
     folder = Path(tempfile.mkdtemp(prefix="cohflash-bench-"))
     capture = args.capture
     if capture is None:
         capture = str(folder / "traffic.h5")
-        subprocess.run([sys.executable, "-m", "cohflash_jax.cli", "simulate", "traffic", "--out", capture,
-                        "--effects", "shot_noise,read_noise,quantization,sidebands", "--quiet"], check=True)
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "cohflash_jax.cli",
+                "simulate",
+                "traffic",
+                "--out",
+                capture,
+                "--effects",
+                "shot_noise,read_noise,quantization,sidebands",
+                "--quiet",
+            ],
+            check=True,
+        )
     pixels = 256 * 320
     # rounds of (references, dft, ml), each in a fresh process: this VM's speed drifts by tens
     # of per cent over minutes, so the ratios are taken within a round, then their median
     rounds = []
     for _ in range(args.repeats):
         ref = run_child("references", capture)
-        rounds.append((ref, {m: run_child("reconstruct", capture, m, str(folder / f"depth-{m}.h5"))
-                             for m in ("dft", "ml")}))
+        rounds.append(
+            (ref, {m: run_child("reconstruct", capture, m, str(folder / f"depth-{m}.h5")) for m in ("dft", "ml")})
+        )
     med = lambda values: statistics.median(list(values))
     print(f"JAX device: {rounds[0][0]['device']}; {args.repeats} rounds, medians")
-    print(f"references over the same I data: read+I/Q {med(r['read_and_iq_s'] for r, _ in rounds):.2f} s; "
-          f"NumPy rfft+argmax {med(r['numpy_s'] for r, _ in rounds):.2f} s; bare JAX rfft+argmax "
-          f"{med(r['jax_s'] for r, _ in rounds):.3f} s from host memory "
-          f"({med(r['jax_resident_s'] for r, _ in rounds):.3f} s on data already on the device)")
+    print(
+        f"references over the same I data: read+I/Q {med(r['read_and_iq_s'] for r, _ in rounds):.2f} s; "
+        f"NumPy rfft+argmax {med(r['numpy_s'] for r, _ in rounds):.2f} s; bare JAX rfft+argmax "
+        f"{med(r['jax_s'] for r, _ in rounds):.3f} s from host memory "
+        f"({med(r['jax_resident_s'] for r, _ in rounds):.3f} s on data already on the device)"
+    )
     for method in ("dft", "ml"):
         warm = med(runs[method]["warm"] for _, runs in rounds)
         cold = med(runs[method]["cold"] for _, runs in rounds)
@@ -159,16 +184,20 @@ def main():
         vs_numpy = [r["numpy_s"] / runs[method]["warm"] for r, runs in rounds]
         vs_jax = med(runs[method]["warm"] / r["jax_s"] for r, runs in rounds)
         vs_resident = med(runs[method]["warm"] / r["jax_resident_s"] for r, runs in rounds)
-        print(f"{method:4s} end to end (file in, depth file out): warm median {warm:.2f} s "
-              f"({pixels / warm:,.0f} px/s), cold {cold:.2f} s incl. compilation; peak RSS {rss:.2f} GB; "
-              f"{rounds[0][1][method]['valid']:.1%} valid; vs NumPy pass {med(vs_numpy):.2f}× faster "
-              f"(rounds: {', '.join(f'{v:.2f}' for v in vs_numpy)}), vs bare JAX pass {vs_jax:.2f}× slower "
-              f"({vs_resident:.2f}× vs its device-resident time)")
+        print(
+            f"{method:4s} end to end (file in, depth file out): warm median {warm:.2f} s "
+            f"({pixels / warm:,.0f} px/s), cold {cold:.2f} s incl. compilation; peak RSS {rss:.2f} GB; "
+            f"{rounds[0][1][method]['valid']:.1%} valid; vs NumPy pass {med(vs_numpy):.2f}× faster "
+            f"(rounds: {', '.join(f'{v:.2f}' for v in vs_numpy)}), vs bare JAX pass {vs_jax:.2f}× slower "
+            f"({vs_resident:.2f}× vs its device-resident time)"
+        )
     ten = run_child("ten_hz")
     for method in ("dft", "ml"):
-        print(f"10 Hz mode (35 frames over 0.17–6 GHz, 10× probe power, 256×320, {method}) after compilation: "
-              f"{ten[f'ten_hz_{method}_ms']:.0f} ms per depth map ({ten[f'ten_hz_{method}_valid']:.1%} valid, "
-              f"planar target: depth std {ten[f'ten_hz_{method}_std_mm']:.2f} mm)")
+        print(
+            f"10 Hz mode (35 frames over 0.17–6 GHz, 10× probe power, 256×320, {method}) after compilation: "
+            f"{ten[f'ten_hz_{method}_ms']:.0f} ms per depth map ({ten[f'ten_hz_{method}_valid']:.1%} valid, "
+            f"planar target: depth std {ten[f'ten_hz_{method}_std_mm']:.2f} mm)"
+        )
 
 
 if __name__ == "__main__":

@@ -41,7 +41,9 @@ def list_views(folders) -> list[list[Path]]:
         views.append(files)
     counts = [len(v) for v in views]
     if len(set(counts)) > 1:
-        raise RegistrationError("unequal numbers of views: " + ", ".join(f"{d} has {c}" for d, c in zip(folders, counts)))
+        raise RegistrationError(
+            "unequal numbers of views: " + ", ".join(f"{d} has {c}" for d, c in zip(folders, counts))
+        )
     return views
 
 
@@ -71,12 +73,18 @@ def detect_corners(img8: np.ndarray, board: Board, refine_on: np.ndarray | None 
     biased the focal length by 0.3–0.8 %. SB, more robust on hard images, is the fallback.
     `refine_on` (float32, e.g. the 16-bit original) is used for the sub-pixel step so that the
     8-bit stretch used for detection does not quantise the corners."""
-    ok, corners = cv2.findChessboardCorners(img8, board.pattern_size,
-                                            flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+    ok, corners = cv2.findChessboardCorners(
+        img8, board.pattern_size, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+    )
     if ok:
         src = img8 if refine_on is None else refine_on
-        corners = cv2.cornerSubPix(src, np.asarray(corners, np.float32).reshape(-1, 1, 2), (5, 5), (-1, -1),
-                                   (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4))
+        corners = cv2.cornerSubPix(
+            src,
+            np.asarray(corners, np.float32).reshape(-1, 1, 2),
+            (5, 5),
+            (-1, -1),
+            (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4),
+        )
     else:
         flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
         ok, corners = cv2.findChessboardCornersSB(img8, board.pattern_size, flags=flags)
@@ -107,7 +115,8 @@ def calibrate_camera(obj: np.ndarray, detections: dict, image_size) -> CameraCal
         if len(names) < MIN_VIEWS:
             raise RegistrationError(f"too few valid views ({len(names)}; at least {MIN_VIEWS} needed)")
         rms, k, d, rvecs, tvecs, std_in, _, per_view = cv2.calibrateCameraExtended(
-            [obj] * len(names), [detections[n].reshape(-1, 1, 2) for n in names], image_size, None, None)
+            [obj] * len(names), [detections[n].reshape(-1, 1, 2) for n in names], image_size, None, None
+        )
         per_view = np.asarray(per_view).ravel()
         med = float(np.median(per_view))
         bad = [n for n, e in zip(names, per_view) if e > max(3 * med, med + 0.5)]
@@ -116,8 +125,9 @@ def calibrate_camera(obj: np.ndarray, detections: dict, image_size) -> CameraCal
         for n in bad:
             left_out[n] = f"outlier: reprojection RMS {per_view[names.index(n)]:.2f} px (median {med:.2f})"
         names = [n for n in names if n not in bad]
-    return CameraCalibration(k, d.ravel(), float(rms), dict(zip(names, map(float, per_view))),
-                             np.asarray(std_in).ravel(), names, left_out)
+    return CameraCalibration(
+        k, d.ravel(), float(rms), dict(zip(names, map(float, per_view))), np.asarray(std_in).ravel(), names, left_out
+    )
 
 
 def _oriented(reference: np.ndarray, corners: np.ndarray) -> np.ndarray:
@@ -162,6 +172,15 @@ def xor_ratio(img1_8: np.ndarray, imgk_8: np.ndarray, map_x=None, map_y=None) ->
 
 
 @dataclasses.dataclass
+class ViewImages:
+    """What the report figure shows of the views: each CCD's 8-bit images and detected corners,
+    keyed by view name. Not stored in the registration file."""
+
+    images8: list[dict]
+    detections: list[dict]
+
+
+@dataclasses.dataclass
 class Registration:
     image_size: tuple[int, int]
     board: Board
@@ -174,60 +193,105 @@ class Registration:
     xor_after: list[float]
     failed: dict  # file → reason
     seconds_per_view: float
+    views: ViewImages | None = dataclasses.field(default=None, repr=False, compare=False)  # for the report
 
     def maps(self, ccd_index: int):
         """(map_x, map_y) of CCD `ccd_index` (2–4) onto CCD 1's grid."""
         k = ccd_index - 1
-        return pixel_maps(self.cameras[0], self.cameras[k], self.R[k - 1], self.T[k - 1], self.image_size,
-                          self.distance_mm)
+        return pixel_maps(
+            self.cameras[0], self.cameras[k], self.R[k - 1], self.T[k - 1], self.image_size, self.distance_mm
+        )
 
     def to_json(self) -> dict:
-        cam = lambda c: {"camera_matrix": c.camera_matrix.tolist(), "dist_coeffs": c.dist_coeffs.tolist(),
-                         "rms_px": c.rms_px, "per_view_rms_px": c.per_view_rms_px,
-                         "std_intrinsics": c.std_intrinsics.tolist(), "views_used": c.views_used,
-                         "views_left_out": c.views_left_out}
-        return {"format": FORMAT_NAME, "format_version": 1, "image_size": list(self.image_size),
-                "board": dataclasses.asdict(self.board), "working_distance_mm": self.distance_mm,
-                "cameras": [cam(c) for c in self.cameras],
-                "relative_poses": [{"ccd": k + 2, "R": np.asarray(r).tolist(), "T_mm": np.asarray(t).ravel().tolist(),
-                                    "rotation_deg": float(np.rad2deg(np.linalg.norm(cv2.Rodrigues(np.asarray(r))[0]))),
-                                    "stereo_rms_px": s}
-                                   for k, (r, t, s) in enumerate(zip(self.R, self.T, self.stereo_rms_px))],
-                "xor_misalignment_before": self.xor_before, "xor_misalignment_after": self.xor_after,
-                "failed_views": self.failed, "seconds_per_view": self.seconds_per_view}
+        cam = lambda c: {
+            "camera_matrix": c.camera_matrix.tolist(),
+            "dist_coeffs": c.dist_coeffs.tolist(),
+            "rms_px": c.rms_px,
+            "per_view_rms_px": c.per_view_rms_px,
+            "std_intrinsics": c.std_intrinsics.tolist(),
+            "views_used": c.views_used,
+            "views_left_out": c.views_left_out,
+        }
+        return {
+            "format": FORMAT_NAME,
+            "format_version": 1,
+            "image_size": list(self.image_size),
+            "board": dataclasses.asdict(self.board),
+            "working_distance_mm": self.distance_mm,
+            "cameras": [cam(c) for c in self.cameras],
+            "relative_poses": [
+                {
+                    "ccd": k + 2,
+                    "R": np.asarray(r).tolist(),
+                    "T_mm": np.asarray(t).ravel().tolist(),
+                    "rotation_deg": float(np.rad2deg(np.linalg.norm(cv2.Rodrigues(np.asarray(r))[0]))),
+                    "stereo_rms_px": s,
+                }
+                for k, (r, t, s) in enumerate(zip(self.R, self.T, self.stereo_rms_px))
+            ],
+            "xor_misalignment_before": self.xor_before,
+            "xor_misalignment_after": self.xor_after,
+            "failed_views": self.failed,
+            "seconds_per_view": self.seconds_per_view,
+        }
 
     @classmethod
     def from_json(cls, data: dict, source="registration") -> "Registration":
         if data.get("format") != FORMAT_NAME:
             raise RegistrationError(f"{source}: format is {data.get('format')!r}, expected {FORMAT_NAME!r}")
         try:
-            cams = [CameraCalibration(np.array(c["camera_matrix"], np.float64), np.array(c["dist_coeffs"], np.float64),
-                                      float(c["rms_px"]), dict(c.get("per_view_rms_px", {})),
-                                      np.array(c.get("std_intrinsics", [])), list(c.get("views_used", [])),
-                                      dict(c.get("views_left_out", {}))) for c in data["cameras"]]
+            cams = [
+                CameraCalibration(
+                    np.array(c["camera_matrix"], np.float64),
+                    np.array(c["dist_coeffs"], np.float64),
+                    float(c["rms_px"]),
+                    dict(c.get("per_view_rms_px", {})),
+                    np.array(c.get("std_intrinsics", [])),
+                    list(c.get("views_used", [])),
+                    dict(c.get("views_left_out", {})),
+                )
+                for c in data["cameras"]
+            ]
             poses = data["relative_poses"]
-            reg = cls(tuple(int(v) for v in data["image_size"]), Board(**data["board"]), cams,
-                      [np.array(p["R"], np.float64) for p in poses], [np.array(p["T_mm"], np.float64) for p in poses],
-                      [float(p.get("stereo_rms_px", 0.0)) for p in poses], float(data["working_distance_mm"]),
-                      list(data.get("xor_misalignment_before", [])), list(data.get("xor_misalignment_after", [])),
-                      dict(data.get("failed_views", {})), float(data.get("seconds_per_view", 0.0)))
+            reg = cls(
+                tuple(int(v) for v in data["image_size"]),
+                Board(**data["board"]),
+                cams,
+                [np.array(p["R"], np.float64) for p in poses],
+                [np.array(p["T_mm"], np.float64) for p in poses],
+                [float(p.get("stereo_rms_px", 0.0)) for p in poses],
+                float(data["working_distance_mm"]),
+                list(data.get("xor_misalignment_before", [])),
+                list(data.get("xor_misalignment_after", [])),
+                dict(data.get("failed_views", {})),
+                float(data.get("seconds_per_view", 0.0)),
+            )
         except (KeyError, TypeError, ValueError) as exc:
             raise RegistrationError(f"{source}: malformed registration file ({exc})") from None
         if len(reg.cameras) != 4 or len(reg.R) != 3:
-            raise RegistrationError(f"{source}: expected 4 cameras and 3 relative poses, got {len(reg.cameras)} "
-                                    f"and {len(reg.R)}")
+            raise RegistrationError(
+                f"{source}: expected 4 cameras and 3 relative poses, got {len(reg.cameras)} and {len(reg.R)}"
+            )
         shaped = [(f"camera {k + 1} camera_matrix", c.camera_matrix, (3, 3)) for k, c in enumerate(reg.cameras)]
-        shaped += [(f"camera {k + 1} dist_coeffs", c.dist_coeffs, c.dist_coeffs.shape) for k, c in enumerate(reg.cameras)]
+        shaped += [
+            (f"camera {k + 1} dist_coeffs", c.dist_coeffs, c.dist_coeffs.shape) for k, c in enumerate(reg.cameras)
+        ]
         shaped += [(f"CCD {k + 2} R", r, (3, 3)) for k, r in enumerate(reg.R)]
         shaped += [(f"CCD {k + 2} T_mm", t, (3,)) for k, t in enumerate(reg.T)]
         for name, arr, shape in shaped:
             if arr.shape != shape or not np.all(np.isfinite(arr)):
-                raise RegistrationError(f"{source}: {name} must be a finite array of shape {shape}, got {arr.shape}"
-                                        + ("" if arr.shape != shape else " with NaN/inf"))
-        if len(reg.image_size) != 2 or min(reg.image_size) < 2 or not (reg.distance_mm > 0 and
-                                                                       math.isfinite(reg.distance_mm)):
-            raise RegistrationError(f"{source}: image_size {reg.image_size} or working distance {reg.distance_mm} mm "
-                                    "out of range")
+                raise RegistrationError(
+                    f"{source}: {name} must be a finite array of shape {shape}, got {arr.shape}"
+                    + ("" if arr.shape != shape else " with NaN/inf")
+                )
+        if (
+            len(reg.image_size) != 2
+            or min(reg.image_size) < 2
+            or not (reg.distance_mm > 0 and math.isfinite(reg.distance_mm))
+        ):
+            raise RegistrationError(
+                f"{source}: image_size {reg.image_size} or working distance {reg.distance_mm} mm out of range"
+            )
         return reg
 
 
@@ -255,8 +319,10 @@ def register(folders, board: Board, distance_mm: float | None = None, progress: 
                 if size is None:
                     size, depth = (img.shape[1], img.shape[0]), img.dtype
                 if (img.shape[1], img.shape[0]) != size:
-                    raise RegistrationError(f"{path}: image size {img.shape[1]}×{img.shape[0]} differs from "
-                                            f"{size[0]}×{size[1]} of the first image")
+                    raise RegistrationError(
+                        f"{path}: image size {img.shape[1]}×{img.shape[0]} differs from "
+                        f"{size[0]}×{size[1]} of the first image"
+                    )
                 if img.dtype != depth:
                     raise RegistrationError(f"{path}: bit depth {img.dtype} differs from {depth} of the first image")
                 img8 = to_uint8(img)
@@ -274,8 +340,10 @@ def register(folders, board: Board, distance_mm: float | None = None, progress: 
         try:
             cams.append(calibrate_camera(obj, detections[k], size))
         except RegistrationError as exc:
-            raise RegistrationError(f"CCD {k + 1} ({folders[k]}): {exc}; failed: "
-                                    + ", ".join(f for f in failed if Path(f).parent == Path(folders[k]))) from None
+            raise RegistrationError(
+                f"CCD {k + 1} ({folders[k]}): {exc}; failed: "
+                + ", ".join(f for f in failed if Path(f).parent == Path(folders[k]))
+            ) from None
     if distance_mm is None:  # median board distance seen by CCD 1
         dists = []
         for n in cams[0].views_used:
@@ -287,12 +355,22 @@ def register(folders, board: Board, distance_mm: float | None = None, progress: 
     for k in range(1, 4):
         common = [n for n in cams[0].views_used if n in cams[k].views_used]
         if len(common) < MIN_VIEWS:
-            raise RegistrationError(f"CCD 1 and CCD {k + 1} share {len(common)} valid views; at least {MIN_VIEWS} needed")
+            raise RegistrationError(
+                f"CCD 1 and CCD {k + 1} share {len(common)} valid views; at least {MIN_VIEWS} needed"
+            )
         pts1 = [detections[0][n].reshape(-1, 1, 2) for n in common]
         ptsk = [_oriented(detections[0][n], detections[k][n]).reshape(-1, 1, 2) for n in common]
-        rms, *_, R, T, _, _ = cv2.stereoCalibrate([obj] * len(common), pts1, ptsk, cams[0].camera_matrix,
-                                                  cams[0].dist_coeffs, cams[k].camera_matrix, cams[k].dist_coeffs,
-                                                  size, flags=cv2.CALIB_FIX_INTRINSIC)
+        rms, *_, R, T, _, _ = cv2.stereoCalibrate(
+            [obj] * len(common),
+            pts1,
+            ptsk,
+            cams[0].camera_matrix,
+            cams[0].dist_coeffs,
+            cams[k].camera_matrix,
+            cams[k].dist_coeffs,
+            size,
+            flags=cv2.CALIB_FIX_INTRINSIC,
+        )
         Rs.append(R)
         Ts.append(T.ravel())
         stereo_rms.append(float(rms))
@@ -304,7 +382,7 @@ def register(folders, board: Board, distance_mm: float | None = None, progress: 
         after.append(float(np.mean([xor_ratio(images8[0][n], images8[k][n], mx, my) for n in common])))
     reg.xor_before, reg.xor_after = before, after
     reg.seconds_per_view = (time.perf_counter() - t0) / total
-    reg._images8, reg._detections = images8, detections  # for the report figure
+    reg.views = ViewImages(images8, detections)
     return reg
 
 
@@ -326,7 +404,9 @@ def save_report(path, reg: Registration) -> Path:
 
     from cohflash_jax.fileio import save_figure
 
-    images8, detections = reg._images8, reg._detections
+    if reg.views is None:
+        raise RegistrationError("the report needs the views the registration was computed from (`register`'s result)")
+    images8, detections = reg.views.images8, reg.views.detections
     common = [n for n in reg.cameras[0].views_used if all(n in c.views_used for c in reg.cameras)]
     view = common[0] if common else reg.cameras[0].views_used[0]
     fig, axes = plt.subplots(3, 4, figsize=(16, 11), dpi=90)
@@ -346,9 +426,17 @@ def save_report(path, reg: Registration) -> Path:
         if reg.cameras[k].views_left_out:
             ax.set_title(f"left out: {', '.join(reg.cameras[k].views_left_out)}", fontsize=8)
     axes[2, 0].axis("off")
-    axes[2, 0].text(0, 0.5, f"working distance {reg.distance_mm:.0f} mm\n" + "\n".join(
-        f"CCD {k + 2}: XOR {b:.2%} → {a:.2%}, stereo RMS {s:.3f} px" for k, (b, a, s) in
-        enumerate(zip(reg.xor_before, reg.xor_after, reg.stereo_rms_px))), fontsize=11, va="center")
+    axes[2, 0].text(
+        0,
+        0.5,
+        f"working distance {reg.distance_mm:.0f} mm\n"
+        + "\n".join(
+            f"CCD {k + 2}: XOR {b:.2%} → {a:.2%}, stereo RMS {s:.3f} px"
+            for k, (b, a, s) in enumerate(zip(reg.xor_before, reg.xor_after, reg.stereo_rms_px))
+        ),
+        fontsize=11,
+        va="center",
+    )
     for k in range(1, 4):
         axes[2, k].imshow(xor_image(images8[0][view], images8[k][view], *reg.maps(k + 1))[0], cmap="gray")
         axes[2, k].set_title(f"XOR CCD 1 vs registered CCD {k + 1}: {reg.xor_after[k - 1]:.2%}")

@@ -47,8 +47,9 @@ def default_rig(image_size=(640, 512)) -> list[VirtualCamera]:
     ]
     for f, cx, cy, dist, rot_deg, t_mm in specs:
         k = np.array([[f * w, 0, cx * w], [0, f * w * 1.001, cy * h], [0, 0, 1]], np.float64)
-        cams.append(VirtualCamera(k, np.array(dist, np.float64), rotation(*rot_deg), np.array(t_mm, np.float64),
-                                  image_size))
+        cams.append(
+            VirtualCamera(k, np.array(dist, np.float64), rotation(*rot_deg), np.array(t_mm, np.float64), image_size)
+        )
     return cams
 
 
@@ -85,10 +86,22 @@ def camera_rays(cam: VirtualCamera, supersample: int = 2) -> np.ndarray:
     return np.stack(rays)
 
 
-def render_view(cam: VirtualCamera, board: Board, board_R: np.ndarray, board_t: np.ndarray, *,
-                rng: np.random.Generator, blur_px: float = 0.7, noise: float = 0.01, bit_depth: int = 8,
-                black: float = 0.1, white: float = 0.9, background: float = 0.45, rays: np.ndarray | None = None,
-                offset: float = 0.0) -> np.ndarray:
+def render_view(
+    cam: VirtualCamera,
+    board: Board,
+    board_R: np.ndarray,
+    board_t: np.ndarray,
+    *,
+    rng: np.random.Generator,
+    blur_px: float = 0.7,
+    noise: float = 0.01,
+    bit_depth: int = 8,
+    black: float = 0.1,
+    white: float = 0.9,
+    background: float = 0.45,
+    rays: np.ndarray | None = None,
+    offset: float = 0.0,
+) -> np.ndarray:
     """One image of the board at pose (board_R, board_t) in CCD 1's frame, seen by `cam`.
 
     `black`, `white`, `background` and `noise` are fractions of full scale; `offset` adds a
@@ -111,8 +124,9 @@ def render_view(cam: VirtualCamera, board: Board, board_R: np.ndarray, board_t: 
     return np.clip(np.round(img * top), 0, top).astype(dtype)
 
 
-def write_rig_views(folder: Path, cams: list[VirtualCamera], board: Board, poses, *, rng, bit_depth=8,
-                    **render_kw) -> list[Path]:
+def write_rig_views(
+    folder: Path, cams: list[VirtualCamera], board: Board, poses, *, rng, bit_depth=8, **render_kw
+) -> list[Path]:
     """Render every pose for every camera into folder/ccd{k}/view_{i:03d}.png; returns the folders."""
     dirs = []
     for k, cam in enumerate(cams, start=1):

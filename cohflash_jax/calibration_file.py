@@ -19,6 +19,7 @@ import numpy as np
 
 from .fileio import atomic_path, read_json
 from .hybrid import Hybrid
+from .instrument import Instrument
 from .modulator import MZM
 
 FORMAT = "cohflash-calibration"
@@ -31,6 +32,31 @@ def _value(entry):
     if isinstance(entry, dict):
         return entry.get("value")
     return entry
+
+
+@dataclasses.dataclass(frozen=True)
+class PixelMaps:
+    """Per-pixel corrections applied before I/Q, each (4, H, W) or None. `offset_dn`: offsets
+    (DN) per CCD and pixel — a dark frame — which then replace the hybrid's global offsets
+    (never both); `gain`: gains relative to the hybrid's global ones (CCD 1 ≡ 1)."""
+
+    offset_dn: np.ndarray | None = None
+    gain: np.ndarray | None = None
+
+    def apply(self, instrument: Instrument) -> Instrument:
+        """The instrument whose hybrid these maps correct: per-pixel offsets replace the
+        hybrid's global ones (never both are subtracted)."""
+        if self.offset_dn is None:
+            return instrument
+        return instrument.replace(hybrid=dataclasses.replace(instrument.hybrid, offsets_dn=(0.0,) * 4))
+
+    def check_shape(self, height: int, width: int, source: str = "pixel maps"):
+        for name in ("offset_dn", "gain"):
+            arr = getattr(self, name)
+            if arr is not None and np.shape(arr) != (4, height, width):
+                raise ValueError(
+                    f"{source}: {name} has shape {np.shape(arr)}, the capture needs (4, {height}, {width})"
+                )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,16 +80,19 @@ class Calibration:
             raise ValueError(f"{source}: format is {data.get('format')!r}, expected {FORMAT!r}")
         version = data.get("format_version", FORMAT_VERSION)
         if version != FORMAT_VERSION:
-            raise ValueError(f"{source}: format_version {version!r} is not supported (this reader knows "
-                             f"version {FORMAT_VERSION})")
+            raise ValueError(
+                f"{source}: format_version {version!r} is not supported (this reader knows version {FORMAT_VERSION})"
+            )
         notes = []
         h = data.get("hybrid") or {}
         hybrid = None
         if h.get("phases_rad") is not None:
             try:
-                hybrid = Hybrid(tuple(map(float, h["phases_rad"])),
-                                tuple(map(float, h.get("relative_gains") or (1.0,) * 4)),
-                                tuple(map(float, h.get("offsets_dn") or (0.0,) * 4)))
+                hybrid = Hybrid(
+                    tuple(map(float, h["phases_rad"])),
+                    tuple(map(float, h.get("relative_gains") or (1.0,) * 4)),
+                    tuple(map(float, h.get("offsets_dn") or (0.0,) * 4)),
+                )
             except (TypeError, ValueError) as exc:
                 raise ValueError(f"{source}: hybrid: {exc}") from None
             for name in ("phases_rad", "relative_gains", "offsets_dn"):
@@ -81,8 +110,12 @@ class Calibration:
                 notes.append("modulator not identified in the calibration: the capture's settings used")
             else:
                 try:
-                    modulator = MZM(float(beta), float(bias), float("inf") if roll is None else float(roll),
-                                    max_order=int(mod.get("max_order", 3)))
+                    modulator = MZM(
+                        float(beta),
+                        float(bias),
+                        float("inf") if roll is None else float(roll),
+                        max_order=int(mod.get("max_order", 3)),
+                    )
                 except (TypeError, ValueError) as exc:
                     raise ValueError(f"{source}: modulator: {exc}") from None
         delay = _value(data.get("system_delay_s", 0.0))
@@ -95,7 +128,9 @@ class Calibration:
             delay = math.nan
         if not math.isfinite(delay):
             raise ValueError(f"{source}: system_delay_s must be a finite number of seconds, got {delay!r}")
-        if modulator is not None and not all(math.isfinite(v) for v in (modulator.modulation_index, modulator.bias_rad)):
+        if modulator is not None and not all(
+            math.isfinite(v) for v in (modulator.modulation_index, modulator.bias_rad)
+        ):
             raise ValueError(f"{source}: modulator modulation_index and bias_rad must be finite")
         maps = maps or {}
         for name, arr in maps.items():
@@ -125,6 +160,21 @@ class Calibration:
             return cls.from_document(data, str(path), maps)
         return cls.from_document(read_json(path, "calibration"), str(path))
 
+    def apply(self, instrument: Instrument) -> Instrument:
+        """The calibrated instrument: `instrument` (a capture's nominal one,
+        `Capture.instrument`) with the identified hybrid, modulator and system delay; a part
+        the calibration did not identify stays as it was (`notes` says which)."""
+        return instrument.replace(
+            hybrid=self.hybrid or instrument.hybrid,
+            modulator=self.modulator or instrument.modulator,
+            system_delay_s=self.system_delay_s,
+        )
+
+    def pixel_maps(self, dark_dn: np.ndarray | None = None) -> PixelMaps:
+        """Per-pixel corrections: a capture's own dark frame (`dark_dn`) before the
+        calibration's offset map, and the calibration's gain map."""
+        return PixelMaps(dark_dn if dark_dn is not None else self.offset_map_dn, self.gain_map)
+
     def check_shape(self, height: int, width: int, source: str = "calibration"):
         for name in MAP_NAMES:
             arr = getattr(self, name)
@@ -149,10 +199,32 @@ def write_calibration(path, document: dict, maps: dict | None = None) -> Path:
     if path.suffix.lower() != ".json":
         raise ValueError(f"calibration output must end in .json or .h5, got {path.name}")
     if maps:
-        warnings.warn(f"per-pixel maps ({', '.join(sorted(maps))}) are not stored in JSON: write a .h5 "
-                      "calibration to keep them", stacklevel=2)
+        warnings.warn(
+            f"per-pixel maps ({', '.join(sorted(maps))}) are not stored in JSON: write a .h5 calibration to keep them",
+            stacklevel=2,
+        )
         document = {**document, "maps": []}
         text = json.dumps(document, indent=1, allow_nan=True)
     with atomic_path(path) as tmp:
         tmp.write_text(text)
     return path
+
+
+@dataclasses.dataclass(frozen=True)
+class CaptureSetup:
+    """What to reconstruct a capture with: its instrument (nominal, or calibrated), the
+    per-pixel maps (its dark frame, or the calibration's maps), and the calibration's fallback
+    notes. `reconstruct`, `uncertainty` and the studies take a capture through here."""
+
+    instrument: Instrument
+    maps: PixelMaps
+    notes: tuple[str, ...] = ()
+
+    @classmethod
+    def of(cls, capture, calibration: Calibration | None = None) -> CaptureSetup:
+        """The setup of an open `Capture`, calibrated by `calibration` where given."""
+        instrument = capture.instrument()
+        if calibration is None:
+            return cls(instrument, PixelMaps(capture.dark))
+        calibration.check_shape(*capture.shape[1:])
+        return cls(calibration.apply(instrument), calibration.pixel_maps(capture.dark), calibration.notes)

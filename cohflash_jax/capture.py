@@ -1,4 +1,6 @@
-"""Capture file format v1 (HDF5; DESIGN.md §4): atomic writing, validated tiled reading.
+"""Capture file format v1 (HDF5; docs/formats.md): this module owns it end to end — the
+header an instrument writes (`capture_attributes`), atomic writing (`write_capture`), and
+validated tiled reading with the instrument it describes (`Capture`, `Capture.instrument`).
 
 Root attributes: format = "cohflash-capture", format_version = 1, exposure_s,
 frame_rate_hz, wavelength_m. Optional root attributes that cohflash writes and reads
@@ -20,11 +22,36 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from .fileio import atomic_path
+from .hybrid import NOMINAL_PHASES_RAD, Hybrid
+from .instrument import DEFAULT_FIELD_OF_VIEW_DEG, Instrument
+from .modulator import MZM
+from .sensor import Sensor
+from .sweep import FrequencySweep
 
 FORMAT_NAME = "cohflash-capture"
 FORMAT_VERSION = 1
 REQUIRED_ATTRS = ("exposure_s", "frame_rate_hz", "wavelength_m")
 FRAME_DTYPES = (np.dtype(np.uint16), np.dtype(np.float32))
+# A capture that does not state its ADC's bits: only the uint16 maximum is surely saturated.
+UNSTATED_ADC_BITS = 16
+
+
+def capture_attributes(instrument: Instrument) -> dict:
+    """The root attributes a capture of `instrument` carries: the instrument as described
+    (nominal or calibrated), never its departures (`Instrument.errors`), which a real capture
+    cannot know. `Capture.instrument` reads them back."""
+    sensor, mzm = instrument.sensor, instrument.modulator
+    return {
+        "exposure_s": float(sensor.exposure_s),
+        "frame_rate_hz": float(instrument.frame_rate_hz),
+        "wavelength_m": float(sensor.wavelength_m),
+        "field_of_view_deg": np.asarray(instrument.field_of_view_deg),
+        "modulation_index": float(mzm.modulation_index),
+        "bias_rad": float(mzm.bias_rad),
+        "sideband_max_order": int(mzm.max_order),
+        "adc_bits": int(sensor.adc_bits),
+        "dn_per_electron": float(sensor.dn_per_electron),
+    }
 
 
 def frequency_problem(frequencies_hz) -> str | None:
@@ -35,7 +62,8 @@ def frequency_problem(frequencies_hz) -> str | None:
     if not np.all(np.isfinite(f)):
         return "frequencies_hz contains NaN or inf"
     if np.any(np.diff(f) <= 0):
-        return f"frequencies_hz must be strictly increasing (first violation at frame {int(np.argmax(np.diff(f) <= 0)) + 1})"
+        first = int(np.argmax(np.diff(f) <= 0)) + 1
+        return f"frequencies_hz must be strictly increasing (first violation at frame {first})"
     return None
 
 
@@ -47,9 +75,21 @@ def _chunk_shape(num_frames, height, width, frames_per_chunk):
     return (1, max(1, min(frames_per_chunk, num_frames)), max(1, min(32, height)), width)
 
 
-def write_capture(path, chunks: Iterable[tuple[int, int, np.ndarray]], *, frequencies_hz, height: int, width: int,
-                  dtype, attrs: dict, hybrid_phases_rad=None, dark=None, truth: dict | None = None,
-                  frames_per_chunk: int = 64, progress: bool = True) -> Path:
+def write_capture(
+    path,
+    chunks: Iterable[tuple[int, int, np.ndarray]],
+    *,
+    frequencies_hz,
+    height: int,
+    width: int,
+    dtype,
+    attrs: dict,
+    hybrid_phases_rad=None,
+    dark=None,
+    truth: dict | None = None,
+    frames_per_chunk: int = 64,
+    progress: bool = True,
+) -> Path:
     """Write a v1 capture atomically from an iterator of (m0, m1, frames[4, m1−m0, H, W])."""
     path = Path(path)
     freqs = np.asarray(frequencies_hz, np.float64)
@@ -57,8 +97,7 @@ def write_capture(path, chunks: Iterable[tuple[int, int, np.ndarray]], *, freque
     dtype = np.dtype(dtype)
     if dtype not in FRAME_DTYPES:
         raise CaptureError(f"frames dtype must be uint16 or float32, got {dtype}")
-    phases = np.asarray((0.0, np.pi / 2, np.pi, 1.5 * np.pi) if hybrid_phases_rad is None else hybrid_phases_rad,
-                        np.float64)
+    phases = np.asarray(NOMINAL_PHASES_RAD if hybrid_phases_rad is None else hybrid_phases_rad, np.float64)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = FORMAT_NAME
         f.attrs["format_version"] = FORMAT_VERSION
@@ -67,8 +106,9 @@ def write_capture(path, chunks: Iterable[tuple[int, int, np.ndarray]], *, freque
         missing = [k for k in REQUIRED_ATTRS if k not in f.attrs]
         if missing:
             raise CaptureError(f"capture attributes missing: {', '.join(missing)}")
-        frames = f.create_dataset("frames", shape=(4, n, height, width), dtype=dtype,
-                                  chunks=_chunk_shape(n, height, width, frames_per_chunk))
+        frames = f.create_dataset(
+            "frames", shape=(4, n, height, width), dtype=dtype, chunks=_chunk_shape(n, height, width, frames_per_chunk)
+        )
         f.create_dataset("frequencies_hz", data=freqs)
         f.create_dataset("hybrid_phases_rad", data=phases)
         if dark is not None:
@@ -158,6 +198,21 @@ class Capture:
             self._fail(f"hybrid_phases_rad must have shape (4,), got {phases.shape}")
         if not np.all(np.isfinite(phases[()])):
             self._fail("hybrid_phases_rad contains NaN or inf")
+        if "field_of_view_deg" in f.attrs:
+            try:
+                fov = np.asarray(f.attrs["field_of_view_deg"], np.float64)
+            except (TypeError, ValueError):
+                fov = np.zeros(0)
+            if fov.shape != (2,) or not np.all(np.isfinite(fov)) or not np.all((fov > 0) & (fov < 180)):
+                self._fail(
+                    f"attribute field_of_view_deg must be two angles (horizontal, vertical) in (0°, 180°), "
+                    f"got {f.attrs['field_of_view_deg']!r}"
+                )
+        for name in ("modulation_index", "dn_per_electron"):
+            if name in f.attrs and not (np.isfinite(v := self._number_attr(name)) and v > 0):
+                self._fail(f"attribute {name} must be a positive number, got {v}")
+        if "bias_rad" in f.attrs and not np.isfinite(self._number_attr("bias_rad")):
+            self._fail("attribute bias_rad must be a finite number of radians")
         if "adc_bits" in f.attrs:
             bits = self._number_attr("adc_bits")
             if not (np.isfinite(bits) and bits == round(bits) and 1 <= bits <= 16):
@@ -209,11 +264,42 @@ class Capture:
 
     @property
     def saturation_dn(self) -> float | None:
-        """DN value that marks ADC saturation (uint16 frames), from adc_bits when present."""
+        """DN value that marks ADC saturation (uint16 frames): the ADC maximum of the capture's
+        instrument (adc_bits when stated, else 16 bits); None for float frames."""
         if self.frames.dtype != np.uint16:
             return None
-        bits = int(self._file.attrs.get("adc_bits", 16))
-        return float(2**bits - 1)
+        return float(2 ** int(self._file.attrs.get("adc_bits", UNSTATED_ADC_BITS)) - 1)
+
+    def instrument(self) -> Instrument:
+        """The instrument this capture describes: its sweep, nominal hybrid phases, modulator
+        (β, θ_b and sideband orders where stated, else `MZM`'s defaults), sensor (exposure,
+        wavelength, ADC bits, gain) and timing; no system delay and no known departures.
+        `Calibration.apply` turns it into the calibrated instrument."""
+        a = self.attrs
+        default_mzm, default_sensor = MZM(), Sensor()
+        try:
+            modulator = MZM(
+                float(a.get("modulation_index", default_mzm.modulation_index)),
+                float(a.get("bias_rad", default_mzm.bias_rad)),
+                max_order=int(a.get("sideband_max_order", default_mzm.max_order)),
+            )
+            sensor = Sensor(
+                exposure_s=float(a["exposure_s"]),
+                wavelength_m=float(a["wavelength_m"]),
+                adc_bits=int(a.get("adc_bits", UNSTATED_ADC_BITS)),
+                dn_per_electron=float(a.get("dn_per_electron", default_sensor.dn_per_electron)),
+            )
+            fov = tuple(float(v) for v in np.asarray(a.get("field_of_view_deg", DEFAULT_FIELD_OF_VIEW_DEG)))
+            return Instrument(
+                sweep=FrequencySweep(self.frequencies_hz),
+                modulator=modulator,
+                hybrid=Hybrid(tuple(float(v) for v in self.hybrid_phases_rad)),
+                sensor=sensor,
+                frame_rate_hz=float(a["frame_rate_hz"]),
+                field_of_view_deg=fov,
+            )
+        except (TypeError, ValueError) as exc:
+            self._fail(f"the attributes do not describe a usable instrument: {exc}")
 
     # -- data -------------------------------------------------------------------------------
     def read_tile(self, rows: slice, cols: slice = slice(None)) -> np.ndarray:

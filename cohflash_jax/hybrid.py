@@ -26,7 +26,7 @@ class Hybrid(eqx.Module):
             shape = np.shape(getattr(self, name))
             if shape != (4,):
                 raise ValueError(f"Hybrid.{name} must have shape (4,), got {shape}")
-        g = getattr(self, "relative_gains")
+        g = self.relative_gains
         if isinstance(g, (tuple, list, np.ndarray)) and not np.all(np.asarray(g) > 0):
             raise ValueError("Hybrid.relative_gains must be positive")
 
@@ -36,7 +36,7 @@ class Hybrid(eqx.Module):
         Inputs carry a leading CCD axis of length 1 (all CCDs see the same pixel) or 4.
         `common_e` holds everything split equally over the ports (reference and echo
         intensity, background, …); `coherent_e` is √N_l·Σ_r α_r·S(ψ_r), so a single
-        return gives ¼[(N_l+N_e)S_0 + 2√(N_l N_e)·S·cos(φ+θ_k)] (DESIGN.md §1).
+        return gives ¼[(N_l+N_e)S_0 + 2√(N_l N_e)·S·cos(φ+θ_k)] (docs/design-reference.md §1).
         """
         coherent_e = jnp.asarray(coherent_e)
         theta = jnp.asarray(self.phases_rad).reshape((4,) + (1,) * (coherent_e.ndim - 1))

@@ -1,6 +1,6 @@
 """Mach–Zehnder modulator: Bessel sideband weights and the exposure-averaged beat S(ψ).
 
-Convention (DESIGN.md §1): drive V(t) = V_b + V_m cos Ωt, modulation index
+Convention (docs/design-reference.md §1): drive V(t) = V_b + V_m cos Ωt, modulation index
 β = π·V_m/V_π, x = β/2, bias angle θ_b; field transfer t = cos(θ_b + x cos Ωt) =
 Σ c_n e^{inΩt} with |c_n|² = J_n(x)² cos²θ_b (n even), J_n(x)² sin²θ_b (n odd).
 The exposure-averaged product of reference and echo transfers is
@@ -8,6 +8,8 @@ S(ψ) = |c_0|² + 2 Σ_{n≥1} |c_n|² cos(nψ), ψ = 2π f τ.
 """
 
 from __future__ import annotations
+
+import math
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -39,7 +41,9 @@ def bessel_j(orders: ArrayLike, x: ArrayLike) -> Float[Array, "..."]:
     # below 2π + |x| at every order: in float32 the rounding of n·t_k itself (up to 200 rad at
     # order 32) would otherwise dominate (measured: max error 7.9e-7 → 2.5e-7 over orders ≤ 32)
     turns = jnp.mod(n_b[..., None] * nodes, _BESSEL_NODES).astype(dtype)
-    phase = turns * (2 * np.pi / _BESSEL_NODES) - x_b[..., None] * jnp.asarray(np.sin(2 * np.pi * nodes / _BESSEL_NODES), dtype)
+    phase = turns * (2 * np.pi / _BESSEL_NODES) - x_b[..., None] * jnp.asarray(
+        np.sin(2 * np.pi * nodes / _BESSEL_NODES), dtype
+    )
     return jnp.mean(jnp.cos(phase), axis=-1)
 
 
@@ -102,14 +106,35 @@ class MZM(eqx.Module):
         ratio = f / jnp.asarray(self.rolloff_3db_hz, dtype=f.dtype)
         return 0.5 * self.modulation_index / jnp.sqrt(1.0 + ratio**2)
 
+    @property
+    def flat(self) -> bool:
+        """True when β does not depend on frequency (no roll-off, f_3dB = ∞, known on the host)."""
+        r = self.rolloff_3db_hz
+        return isinstance(r, (int, float)) and math.isinf(r)
+
+    def half_index(self, frequencies_hz: ArrayLike | None = None):
+        """x = β/2: a scalar where β is flat or no frequencies are given, else x(f) per frequency."""
+        if frequencies_hz is None or self.flat:
+            return 0.5 * self.modulation_index
+        return self.x_at(frequencies_hz)
+
     def weights(self, frequencies_hz: ArrayLike | None = None, max_order: int | None = None):
-        """Sideband weights |c_n|²: (K,) without frequencies, (N, K) with roll-off over f."""
+        """Sideband weights |c_n|²: (K,) without frequencies, (…, K) at each frequency (the
+        roll-off applied). The simulator, the Fisher information, calibration and every
+        estimator take the sidebands from here."""
         order = self.max_order if max_order is None else max_order
-        x = 0.5 * jnp.asarray(self.modulation_index, jnp.float64) if frequencies_hz is None \
+        x = (
+            0.5 * jnp.asarray(self.modulation_index, jnp.float64)
+            if frequencies_hz is None
             else self.x_at(frequencies_hz)
+        )
         return sideband_weights(x, self.bias_rad, order)
 
     def mean_transmission(self, frequencies_hz: ArrayLike | None = None):
-        x = 0.5 * jnp.asarray(self.modulation_index, jnp.float64) if frequencies_hz is None \
+        """S_0 = Σ|c_n|²: a scalar without frequencies, else at each frequency (roll-off applied)."""
+        x = (
+            0.5 * jnp.asarray(self.modulation_index, jnp.float64)
+            if frequencies_hz is None
             else self.x_at(frequencies_hz)
+        )
         return mean_transmission(x, self.bias_rad)

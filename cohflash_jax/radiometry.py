@@ -36,7 +36,8 @@ def _lambertian_factor(probe_w, pixels, aperture_m, distance_m):
 
 # η_rx such that the defaults reproduce the paper's 0.26 fW at 30.5 m for ρ = 0.5 (≈ 1.5 %).
 PAPER_RECEIVER_EFFICIENCY = PAPER_ECHO_POWER_PER_PIXEL_W / (
-    PAPER_REFLECTANCE * _lambertian_factor(PAPER_PROBE_POWER_W, PAPER_PIXELS, APERTURE_DIAMETER_M, PAPER_DISTANCE_M))
+    PAPER_REFLECTANCE * _lambertian_factor(PAPER_PROBE_POWER_W, PAPER_PIXELS, APERTURE_DIAMETER_M, PAPER_DISTANCE_M)
+)
 
 
 class LinkBudget(eqx.Module):
@@ -50,8 +51,13 @@ class LinkBudget(eqx.Module):
     illuminated_pixels: int = eqx.field(static=True, default=PAPER_PIXELS)
 
     def __check_init__(self):
-        for name in ("probe_power_w", "reference_power_per_pixel_w", "aperture_diameter_m",
-                     "receiver_efficiency", "reference_distance_m"):
+        for name in (
+            "probe_power_w",
+            "reference_power_per_pixel_w",
+            "aperture_diameter_m",
+            "receiver_efficiency",
+            "reference_distance_m",
+        ):
             v = getattr(self, name)
             if isinstance(v, (int, float)) and not v >= 0:
                 raise ValueError(f"LinkBudget.{name} must be ≥ 0 (a power cannot be negative), got {v}")

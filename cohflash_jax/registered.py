@@ -13,7 +13,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-OUTSIDE = 8  # status: a CCD 1 pixel that some other CCD does not see
+from .status import Status
+
+# Bilinear resampling reads a pixel's row and the next: a band needs this many rows beyond the
+# maps' largest row offset
+BAND_MARGIN_ROWS = 2
 
 
 @jax.jit
@@ -36,7 +40,7 @@ class RegisteredTiles:
                 raise ValueError(f"registration maps are {mx.shape[1]}×{mx.shape[0]} px but the capture is {w}×{h}")
         self.maps = [(np.asarray(mx, np.float64), np.asarray(my, np.float64)) for mx, my in maps]
         rows_idx = np.arange(h)[:, None]
-        self.margin = int(math.ceil(max(np.max(np.abs(my - rows_idx)) for _, my in self.maps))) + 2
+        self.margin = int(math.ceil(max(np.max(np.abs(my - rows_idx)) for _, my in self.maps))) + BAND_MARGIN_ROWS
         self.band = rows + 2 * self.margin
         sat = capture.saturation_dn
         self.saturation = None if sat is None else float(sat)
@@ -55,8 +59,9 @@ class RegisteredTiles:
         y0 = np.minimum(np.floor(y), self.h - 2).astype(np.int64)
         fx, fy = x - x0, y - y0
         by = y0 - start
-        idx = np.stack([by * self.w + x0, by * self.w + x0 + 1, (by + 1) * self.w + x0, (by + 1) * self.w + x0 + 1],
-                       axis=-1).reshape(-1, 4)
+        idx = np.stack(
+            [by * self.w + x0, by * self.w + x0 + 1, (by + 1) * self.w + x0, (by + 1) * self.w + x0 + 1], axis=-1
+        ).reshape(-1, 4)
         wts = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=-1).reshape(-1, 4)
         return start, idx.astype(np.int32), wts.astype(np.float32), outside.ravel()
 
@@ -64,7 +69,7 @@ class RegisteredTiles:
         lo, hi = max(0, start), min(self.h, start + self.band)
         block = self.capture.frames[k, :, lo:hi, :]
         out = np.zeros((self.n, self.band, self.w), block.dtype)
-        out[:, lo - start:hi - start] = block
+        out[:, lo - start : hi - start] = block
         return out.reshape(self.n, -1)
 
     def tile(self, r0):
@@ -80,9 +85,9 @@ class RegisteredTiles:
             band = self._band(k + 1, start)
             if self.saturation is not None:  # saturation is judged on the source pixels
                 sat_src = np.any(band >= self.saturation, axis=0)
-                status[np.any(sat_src[idx] & (wts > 0), axis=1)] = 5
+                status[np.any(sat_src[idx] & (wts > 0), axis=1)] = Status.SATURATED
             ccds.append(_bilinear(jnp.asarray(band), jnp.asarray(idx), jnp.asarray(wts)))
-            status[outside] = OUTSIDE
+            status[outside] = Status.OUTSIDE_REGISTRATION
         return r1, jnp.stack(ccds), jnp.asarray(status)
 
 
@@ -93,6 +98,7 @@ def register_pixel_map(per_ccd: np.ndarray, maps) -> np.ndarray:
 
     out = per_ccd.astype(np.float32).copy()
     for k, (mx, my) in enumerate(maps, start=1):
-        out[k] = cv2.remap(out[k], mx.astype(np.float32), my.astype(np.float32), cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_REPLICATE)
+        out[k] = cv2.remap(
+            out[k], mx.astype(np.float32), my.astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
     return out

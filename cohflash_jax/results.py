@@ -19,24 +19,32 @@ import h5py
 import numpy as np
 
 from .fileio import atomic_path, save_figure
+from .instrument import DEFAULT_FIELD_OF_VIEW_DEG
+from .status import Status
 
 FORMAT_NAME = "cohflash-depth"
 FORMAT_VERSION = 1
-_DTYPES = {"depth_m": np.float64, "amplitude": np.float32, "valid": np.uint8, "sigma_m": np.float32,
-           "snr": np.float32, "fit_status": np.int8, "coarse_depth_m": np.float64,
-           "fit_chi2": np.float32}
+_DTYPES = {
+    "depth_m": np.float64,
+    "amplitude": np.float32,
+    "valid": np.uint8,
+    "sigma_m": np.float32,
+    "snr": np.float32,
+    "fit_status": np.int8,
+    "coarse_depth_m": np.float64,
+    "fit_chi2": np.float32,
+}
 
 
 def write_depth(path, outputs: dict, meta: dict, provenance: dict) -> Path:
-    from .reconstruct import STATUS
-
+    """depth.h5 from a reconstruction's outputs and meta data, with provenance, atomically."""
     path = Path(path)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = FORMAT_NAME
         f.attrs["format_version"] = FORMAT_VERSION
         for k, v in meta.items():
             f.attrs[k] = v
-        f.attrs["status_codes"] = json.dumps(STATUS)
+        f.attrs["status_codes"] = Status.table_json()
         f.attrs["provenance"] = json.dumps(provenance, default=str)
         for name, dtype in _DTYPES.items():
             if name in outputs:
@@ -54,8 +62,9 @@ def read_depth(path) -> tuple[dict, dict]:
         return {k: f[k][()] for k in f.keys()}, dict(f.attrs)
 
 
-def save_preview_png(path, depth_m, valid, title: str = "", reference_m: float | None = None,
-                     range_mm: tuple[float, float] | None = None) -> Path:
+def save_preview_png(
+    path, depth_m, valid, title: str = "", reference_m: float | None = None, range_mm: tuple[float, float] | None = None
+) -> Path:
     """Colour-mapped depth in mm relative to a reference (default: median of valid pixels),
     colour bar in mm, invalid pixels grey. `range_mm` fixes the colour limits (default: 1st
     to 99th percentile); values outside saturate, as the colour bar's arrows show."""
@@ -107,7 +116,7 @@ def pixel_rays(height: int, width: int, fov_deg: tuple[float, float]) -> np.ndar
     return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
 
 
-def save_ply(path, depth_m, valid, amplitude, fov_deg=(0.72, 0.58)) -> Path:
+def save_ply(path, depth_m, valid, amplitude, fov_deg=DEFAULT_FIELD_OF_VIEW_DEG) -> Path:
     """Binary little-endian PLY of valid pixels: x, y, z (m, float32) and intensity."""
     valid = np.asarray(valid, bool)
     h, w = valid.shape
@@ -116,9 +125,11 @@ def save_ply(path, depth_m, valid, amplitude, fov_deg=(0.72, 0.58)) -> Path:
     inten = np.asarray(amplitude, np.float32)[valid]
     vertex = np.empty(sel.shape[0], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
     vertex["x"], vertex["y"], vertex["z"], vertex["intensity"] = sel[:, 0], sel[:, 1], sel[:, 2], inten
-    header = ("ply\nformat binary_little_endian 1.0\ncomment cohflash depth export\n"
-              f"element vertex {sel.shape[0]}\nproperty float x\nproperty float y\nproperty float z\n"
-              "property float intensity\nend_header\n").encode()
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment cohflash depth export\n"
+        f"element vertex {sel.shape[0]}\nproperty float x\nproperty float y\nproperty float z\n"
+        "property float intensity\nend_header\n"
+    ).encode()
     path = Path(path)
     with atomic_path(path) as tmp:
         tmp.write_bytes(header + vertex.tobytes())

@@ -57,10 +57,9 @@ def retain_freed_memory(threshold_bytes: int = 1 << 30) -> bool:
 
     Every sub-tile of a reconstruction allocates ~20 MB of short-lived buffers (I/Q, the
     rotated sequence, spectra); with glibc's defaults much of it goes back to the kernel and
-    every reuse page-faults again. Measured on a full 320×256×3000 capture, 4 runs in one
-    process: 1.5–2.1 M minor page faults → 0.1–0.2 M, `dft` warm 2.2–2.8 s → 1.7–1.9 s.
-    Peak memory is unchanged (freed blocks are reused, not added), but up to `threshold_bytes`
-    of freed memory stays with the process afterwards instead of returning to the system.
+    every reuse page-faults again (docs/performance.md). Peak memory is unchanged (freed blocks
+    are reused, not added), but up to `threshold_bytes` of freed memory stays with the process
+    afterwards instead of returning to the system.
     Applied once per process; a no-op off Linux/glibc. Returns whether the settings are in force."""
     global _applied
     if _applied or not sys.platform.startswith("linux"):
@@ -68,7 +67,8 @@ def retain_freed_memory(threshold_bytes: int = 1 << 30) -> bool:
     try:
         libc = ctypes.CDLL("libc.so.6")
         _applied = bool(libc.mallopt(_M_MMAP_THRESHOLD, int(threshold_bytes))) and bool(
-            libc.mallopt(_M_TRIM_THRESHOLD, int(threshold_bytes)))
+            libc.mallopt(_M_TRIM_THRESHOLD, int(threshold_bytes))
+        )
     except (OSError, AttributeError):  # not glibc (e.g. musl): leave the allocator alone
         _applied = False
     return _applied
@@ -77,9 +77,8 @@ def retain_freed_memory(threshold_bytes: int = 1 << 30) -> bool:
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | None:
     """Keep XLA's compiled programs on disk between runs (the CLI turns this on).
 
-    A `cohflash reconstruct` run compiles its sub-tile programs afresh in every process: on a
-    full 320×256×3000 capture the first `ml` run took 12.1 s, and 5.2 s once the cache held its
-    programs (2 cores; the cache is ~0.5 MB). Where: `path`, else $COHFLASH_JAX_CACHE, else
+    A `cohflash reconstruct` run would otherwise compile its sub-tile programs afresh in every
+    process (docs/performance.md). Where: `path`, else $COHFLASH_JAX_CACHE, else
     $XDG_CACHE_HOME/cohflash/jax (~/.cache/cohflash/jax); COHFLASH_JAX_CACHE=off disables it.
     A directory that cannot be created leaves the cache off. Returns the directory used."""
     import jax

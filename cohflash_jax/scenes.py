@@ -18,8 +18,7 @@ from .effects import EffectSettings, parse_effects
 Sampler = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 PAPER_DISTANCE_M = 30.5
-_CLEAN = ("sidebands", "shot_noise", "dark_current", "read_noise", "quantization", "saturation",
-          "range_falloff")
+_CLEAN = ("sidebands", "shot_noise", "dark_current", "read_noise", "quantization", "saturation", "range_falloff")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,8 +39,7 @@ class Scene:
 
     def render(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
         """Depth (m) and reflectance at pixel centres, float64 (H, W)."""
-        v, u = np.meshgrid((np.arange(height) + 0.5) / height, (np.arange(width) + 0.5) / width,
-                           indexing="ij")
+        v, u = np.meshgrid((np.arange(height) + 0.5) / height, (np.arange(width) + 0.5) / width, indexing="ij")
         return self.sample(u, v)
 
 
@@ -57,8 +55,12 @@ def _checked(depth, reflectance, name):
     return depth, reflectance
 
 
-def planar(distance_m: float = PAPER_DISTANCE_M, reflectance: float = 0.5,
-           tilt_m_per_fov: tuple[float, float] = (0.0, 0.0), effects=_CLEAN) -> Scene:
+def planar(
+    distance_m: float = PAPER_DISTANCE_M,
+    reflectance: float = 0.5,
+    tilt_m_per_fov: tuple[float, float] = (0.0, 0.0),
+    effects=_CLEAN,
+) -> Scene:
     """Flat target filling the view (the paper's precision target, Fig. 4a–c)."""
     if not distance_m > 0:
         raise ValueError(f"planar: distance_m must be positive, got {distance_m}")
@@ -86,8 +88,9 @@ def staircase(distance_m: float = PAPER_DISTANCE_M, effects=_CLEAN + ("mixed_pix
     return Scene("staircase", sample, effects, "7 steps of 5 mm at 30.5 m before a wall")
 
 
-def traffic(distance_m: float = PAPER_DISTANCE_M,
-            effects=_CLEAN + ("mixed_pixels", "speckle", "background_light")) -> Scene:
+def traffic(
+    distance_m: float = PAPER_DISTANCE_M, effects=_CLEAN + ("mixed_pixels", "speckle", "background_light")
+) -> Scene:
     """A traffic-scene model like Fig. 3: wall, car, pedestrian, light pole, guide board,
     with the illumination shadows they cast on the wall (dark, not absent)."""
 
@@ -166,13 +169,21 @@ def _load_map(path: Path) -> tuple[np.ndarray, float]:
             raise ValueError(f"could not read image {path} (not an image OpenCV can decode)")
     if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
         raise ValueError(f"{path}: a map must hold real numbers, got dtype {arr.dtype}")
-    full_scale = float(np.iinfo(arr.dtype).max) if np.issubdtype(arr.dtype, np.integer) and path.suffix.lower() != ".npy" \
+    full_scale = (
+        float(np.iinfo(arr.dtype).max)
+        if np.issubdtype(arr.dtype, np.integer) and path.suffix.lower() != ".npy"
         else 1.0
+    )
     return arr.astype(np.float64), full_scale
 
 
-def from_files(depth_path, reflectance_path=None, depth_scale_m: float = 1.0,
-               reflectance_scale: float | None = None, effects=_CLEAN) -> Scene:
+def from_files(
+    depth_path,
+    reflectance_path=None,
+    depth_scale_m: float = 1.0,
+    reflectance_scale: float | None = None,
+    effects=_CLEAN,
+) -> Scene:
     """Scene from files: `.npy` arrays (metres and [0, 1]) or images (e.g. 16-bit PNG).
 
     Image values are multiplied by `depth_scale_m` (e.g. 0.001 for depth in mm) and by

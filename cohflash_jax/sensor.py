@@ -55,5 +55,29 @@ class Sensor(eqx.Module):
         return self.dark_current_e_per_s * self.exposure_s
 
     @property
+    def quantization_variance_e2(self):
+        """ADC rounding as noise, in electrons²: one DN step is 1/g electrons, uniform ±½ step."""
+        return (1.0 / self.dn_per_electron) ** 2 / 12.0
+
+    def port_variance_e2(self, mean_e, effects, *, quantization: bool = True):
+        """Variance (electrons²) of one port's sample with `mean_e` mean electrons: shot noise on
+        them, dark-current shot noise, read noise and ADC rounding, each where `effects` lists
+        it (`quantization=False` leaves the rounding out, where the caller rounds for real).
+
+        The one noise model of cohflash: the simulator draws its Gaussian noise with this
+        variance, and the Fisher information, the design's SNR and the tests' closed forms use
+        it. Poisson shot noise (`shot_noise_model`) has the same variance."""
+        var = jnp.zeros_like(mean_e)
+        if "shot_noise" in effects:
+            var = var + jnp.maximum(mean_e, 0.0)
+        if "dark_current" in effects:
+            var = var + jnp.asarray(self.dark_electrons, var.dtype)
+        if "read_noise" in effects:
+            var = var + jnp.asarray(self.read_noise_e, var.dtype) ** 2
+        if quantization and "quantization" in effects:
+            var = var + self.quantization_variance_e2
+        return var
+
+    @property
     def adc_max_dn(self) -> int:
         return 2**self.adc_bits - 1

@@ -1,10 +1,12 @@
 """Simulator: composes exactly the effects a scene calls for into four-CCD frames.
 
-Stages, each one pure function:
+The simulator simulates the true instrument, `Instrument.truth(effects)`: the described
+parts with the departures (`InstrumentErrors`) whose effects the scene lists. Stages, each
+one pure function:
   scene → `build_returns` (per-pixel returns: delays and complex amplitudes; speckle,
   mixed pixels, misregistration, range falloff act here, on the host, once per capture)
-  → `expected_port_electrons` (sweep, modulator with sidebands/roll-off, carrier drift,
-  motion, hybrid; jittable, differentiable in every instrument parameter)
+  → `expected_port_electrons` (sweep, modulator with sidebands and its roll-off, carrier
+  drift, motion, hybrid; jittable, differentiable in every instrument parameter)
   → `sensor_readout` (shot/dark/read noise, saturation, gain, offset, ADC).
 
 Precision per stage (measured, see tests/test_forward.py): the tone phase 2π·f·τ reaches
@@ -26,9 +28,8 @@ from jaxtyping import Array, Complex, Float, PRNGKeyArray
 
 from .constants import SPEED_OF_LIGHT_M_PER_S
 from .effects import EffectSettings, parse_effects
-from .hybrid import NOMINAL_PHASES_RAD, Hybrid
 from .instrument import Instrument
-from .modulator import beat_spectrum, mean_transmission, sideband_weights
+from .modulator import beat_spectrum
 from .runtime import async_filter_jit
 from .scenes import Scene
 
@@ -45,29 +46,9 @@ class Returns(eqx.Module):
     echo_e: Float[Array, "C P"]  # mean echo electrons per pixel (its intensity term)
 
 
-def true_hybrid(instrument: Instrument, settings: EffectSettings, effects) -> Hybrid:
-    """The hybrid the light really meets: nominal, or perturbed by `hybrid_errors`."""
-    if "hybrid_errors" not in effects:
-        return instrument.hybrid
-    return Hybrid(
-        phases_rad=jnp.asarray(instrument.hybrid.phases_rad) + jnp.asarray(settings.hybrid_phase_error_rad),
-        relative_gains=jnp.asarray(instrument.hybrid.relative_gains) * jnp.asarray(settings.hybrid_relative_gains),
-        offsets_dn=jnp.asarray(instrument.hybrid.offsets_dn) + jnp.asarray(settings.hybrid_offset_error_dn),
-    )
-
-
-def _ccd_transforms(settings: EffectSettings, effects) -> list[tuple[float, float, float]]:
-    if "misregistration" not in effects:
-        return [(0.0, 0.0, 0.0)]
-    rows = np.asarray(settings.misregistration_px_px_deg, dtype=np.float64)
-    if rows.shape != (3, 3):
-        raise ValueError("misregistration_px_px_deg must be 3 rows (CCD 2–4) of (dx_px, dy_px, rot_deg)")
-    return [(0.0, 0.0, 0.0)] + [tuple(r) for r in rows]
-
-
-def build_returns(scene: Scene, instrument: Instrument, height: int, width: int,
-                  effects, key: PRNGKeyArray) -> Returns:
-    """Sample the scene into per-pixel returns (host side, once per capture)."""
+def build_returns(scene: Scene, instrument: Instrument, height: int, width: int, effects, key: PRNGKeyArray) -> Returns:
+    """Sample the scene into per-pixel returns (host side, once per capture); CCDs 2–4 sample
+    it through the instrument's misregistration where `misregistration` is listed."""
     effects = parse_effects(effects)
     settings = scene.settings
     sensor, link = instrument.sensor, instrument.link
@@ -77,7 +58,7 @@ def build_returns(scene: Scene, instrument: Instrument, height: int, width: int,
     y, x = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
     cx, cy = width / 2, height / 2
     depth_c, rho_c = [], []
-    for dx, dy, rot_deg in _ccd_transforms(settings, effects):
+    for dx, dy, rot_deg in instrument.errors.ccd_transforms(effects):
         a = np.deg2rad(rot_deg)
         d_sub, r_sub = [], []
         for sx, sy in zip(ox, oy):
@@ -105,8 +86,9 @@ def build_returns(scene: Scene, instrument: Instrument, height: int, width: int,
         gy, gx = np.gradient(depth, axis=(2, 3))
         slope_span = np.clip(np.abs(gx) + np.abs(gy), 0, 0.01)  # depth across one pixel, edges capped
         shape = (C, S, k, height, width)
-        spread = (float(settings.surface_roughness_m) * np.asarray(jax.random.normal(kd, shape))
-                  + slope_span[:, :, None] * (np.asarray(jax.random.uniform(kp, shape)) - 0.5))
+        spread = float(settings.surface_roughness_m) * np.asarray(jax.random.normal(kd, shape)) + slope_span[
+            :, :, None
+        ] * (np.asarray(jax.random.uniform(kp, shape)) - 0.5)
         depth_r = depth[:, :, None] + spread
         gauss = np.asarray(jax.random.normal(ka, shape + (2,)))
         speckle = (gauss[..., 0] + 1j * gauss[..., 1]) / np.sqrt(2 * k)  # E|Σ a|² = 1
@@ -128,10 +110,17 @@ def turbulence_phase(key: PRNGKeyArray, num_frames: int, rad_per_sqrt_frame: flo
     return jnp.cumsum(steps) - steps[0]
 
 
-def expected_port_electrons(instrument: Instrument, settings: EffectSettings, returns: Returns,
-                            frequencies_hz: Float[Array, " F"], frame_index: Float[Array, " F"],
-                            carrier_phase_rad: Float[Array, " F"] | None, effects) -> Float[Array, "4 F P"]:
-    """Mean electrons per port, frame and pixel (float64; differentiable, jittable)."""
+def expected_port_electrons(
+    instrument: Instrument,
+    settings: EffectSettings,
+    returns: Returns,
+    frequencies_hz: Float[Array, " F"],
+    frame_index: Float[Array, " F"],
+    carrier_phase_rad: Float[Array, " F"] | None,
+    effects,
+) -> Float[Array, "4 F P"]:
+    """Mean electrons per port, frame and pixel of `instrument` as given (the simulator passes
+    the true one, `Instrument.truth`; float64; differentiable, jittable)."""
     mzm, sensor, link = instrument.modulator, instrument.sensor, instrument.link
     f = jnp.asarray(frequencies_hz, jnp.float64)
     delay = returns.delay_s[:, None]  # (C, 1, R, P)
@@ -144,13 +133,11 @@ def expected_port_electrons(instrument: Instrument, settings: EffectSettings, re
         extra_phase = extra_phase + 4 * jnp.pi * dd / sensor.wavelength_m
     psi = 2 * jnp.pi * (cycles - jnp.floor(cycles))
     order = mzm.max_order if "sidebands" in effects else min(mzm.max_order, 1)
-    x = 0.5 * mzm.modulation_index
-    if "beta_rolloff" in effects:
-        x = x / jnp.sqrt(1 + (f / settings.beta_rolloff_3db_hz) ** 2)  # (F,)
-        weights = sideband_weights(x, mzm.bias_rad, order)[None, :, None, None, :]
-    else:
-        weights = sideband_weights(x, mzm.bias_rad, order)
-    s0 = jnp.broadcast_to(mean_transmission(x, mzm.bias_rad), f.shape)
+    if mzm.flat:  # one set of weights for the whole sweep
+        weights = mzm.weights(max_order=order)
+    else:  # the roll-off: weights per frequency, (1, F, 1, 1, K) against ψ's (C, F, R, P)
+        weights = mzm.weights(f, max_order=order)[None, :, None, None, :]
+    s0 = jnp.broadcast_to(mzm.mean_transmission(None if mzm.flat else f), f.shape)
     s = beat_spectrum(psi, weights)  # (C, F, R, P)
     reference_e = sensor.electrons(link.reference_power_per_pixel_w)
     coherent = jnp.sqrt(reference_e) * jnp.einsum("cfrp,crp->cfp", s, returns.amplitude)
@@ -158,36 +145,33 @@ def expected_port_electrons(instrument: Instrument, settings: EffectSettings, re
     common = (reference_e + returns.echo_e[:, None, :]) * s0[None, :, None]
     if "background_light" in effects:
         common = common + sensor.electrons(settings.background_power_per_pixel_w)
-    return true_hybrid(instrument, settings, effects).port_electrons(common, coherent)
+    return instrument.hybrid.port_electrons(common, coherent)
 
 
-def sensor_readout(key: PRNGKeyArray, electrons: Float[Array, "4 ..."], instrument: Instrument,
-                   settings: EffectSettings, effects) -> Array:
-    """Noise, clipping, gain, offset and ADC → DN (uint16 with quantization, else float32).
+def sensor_readout(key: PRNGKeyArray, electrons: Float[Array, "4 ..."], instrument: Instrument, effects) -> Array:
+    """Noise, clipping, gain, offset and ADC → DN (uint16 with quantization, else float32),
+    with the gains and offsets of `instrument.hybrid` (the simulator passes the true one).
 
     Gaussian-limit noises (shot in 'gaussian' mode, dark shot, read) are independent, so
-    they are drawn as one normal with the summed variance: one draw per sample, not three.
+    they are drawn as one normal with the summed variance (`Sensor.port_variance_e2`): one
+    draw per sample, not three.
     """
     sensor = instrument.sensor
     e = electrons.astype(jnp.float32)
-    variance = jnp.zeros((), jnp.float32)
+    gaussian = set(effects) & {"dark_current", "read_noise"}
     if "shot_noise" in effects:
         if sensor.shot_noise_model == "poisson":
             e = jax.random.poisson(jax.random.fold_in(key, _KEY_SHOT), jnp.maximum(e, 0)).astype(jnp.float32)
         else:
-            variance = variance + jnp.maximum(e, 0)
+            gaussian.add("shot_noise")
+    variance = sensor.port_variance_e2(e, gaussian, quantization=False)  # the mean, before dark is added
     if "dark_current" in effects:
-        dark = jnp.asarray(sensor.dark_electrons, jnp.float32)
-        e = e + dark
-        variance = variance + dark
-    if "read_noise" in effects:
-        variance = variance + jnp.asarray(sensor.read_noise_e, jnp.float32) ** 2
-    if any(n in effects for n in ("dark_current", "read_noise")) or (
-            "shot_noise" in effects and sensor.shot_noise_model == "gaussian"):
+        e = e + jnp.asarray(sensor.dark_electrons, jnp.float32)
+    if gaussian:
         e = e + jnp.sqrt(variance) * jax.random.normal(jax.random.fold_in(key, _KEY_READ), e.shape, jnp.float32)
     if "saturation" in effects:
         e = jnp.clip(e, 0.0, sensor.full_well_e)
-    hybrid = true_hybrid(instrument, settings, effects)
+    hybrid = instrument.hybrid
     shape = (4,) + (1,) * (e.ndim - 1)
     gain = (jnp.asarray(hybrid.relative_gains, jnp.float32) * sensor.dn_per_electron).reshape(shape)
     offset = (sensor.adc_offset_dn + jnp.asarray(hybrid.offsets_dn, jnp.float32)).reshape(shape)
@@ -200,13 +184,23 @@ def sensor_readout(key: PRNGKeyArray, electrons: Float[Array, "4 ..."], instrume
 
 
 @async_filter_jit  # returns at once: the next chunk computes while the caller writes this one
-def _frames_chunk(instrument, settings, returns, frequencies_padded, carrier_padded, frame_start, key,
-                  *, num_frames: int, effects: tuple[str, ...]):
+def _frames_chunk(
+    instrument,
+    settings,
+    returns,
+    frequencies_padded,
+    carrier_padded,
+    frame_start,
+    key,
+    *,
+    num_frames: int,
+    effects: tuple[str, ...],
+):
     f = jax.lax.dynamic_slice(frequencies_padded, (frame_start,), (num_frames,))
     idx = (frame_start + jnp.arange(num_frames)).astype(jnp.float64)
     carrier = None if carrier_padded is None else jax.lax.dynamic_slice(carrier_padded, (frame_start,), (num_frames,))
     electrons = expected_port_electrons(instrument, settings, returns, f, idx, carrier, effects)
-    return sensor_readout(jax.random.fold_in(key, frame_start), electrons, instrument, settings, effects)
+    return sensor_readout(jax.random.fold_in(key, frame_start), electrons, instrument, effects)
 
 
 def frame_chunk_size(returns: Returns, num_frames: int, budget_elements: int = 6_000_000) -> int:
@@ -217,29 +211,51 @@ def frame_chunk_size(returns: Returns, num_frames: int, budget_elements: int = 6
     return int(min(size, num_frames))
 
 
-def iter_frame_chunks(scene: Scene, instrument: Instrument, height: int, width: int, key: PRNGKeyArray,
-                      effects=None, chunk_frames: int | None = None) -> Iterator[tuple[int, int, np.ndarray]]:
-    """Yield (m0, m1, frames[4, m1−m0, H, W]) over the sweep, one chunk at a time.
+def iter_frame_chunks(
+    scene: Scene,
+    instrument: Instrument,
+    height: int,
+    width: int,
+    key: PRNGKeyArray,
+    effects=None,
+    chunk_frames: int | None = None,
+    returns: Returns | None = None,
+) -> Iterator[tuple[int, int, np.ndarray]]:
+    """Yield (m0, m1, frames[4, m1−m0, H, W]) over the sweep, one chunk at a time, of the true
+    instrument (`Instrument.truth`). `returns`: the scene's returns where the caller already
+    sampled them (`build_returns` with the same key).
 
     The next chunk is dispatched before the current one is handed out, so simulation
     overlaps with whatever the caller does with the chunk (e.g. writing it)."""
     effects = scene.effects if effects is None else parse_effects(effects)
     if height < 1 or width < 1:
         raise ValueError(f"image size must be positive, got {height}×{width}")
-    returns = build_returns(scene, instrument, height, width, effects, key)
+    if returns is None:
+        returns = build_returns(scene, instrument, height, width, effects, key)
+    true = instrument.truth(effects)
     n = instrument.sweep.num_steps
     chunk = chunk_frames or frame_chunk_size(returns, n)
     padded = -(-n // chunk) * chunk
     freqs = np.pad(instrument.sweep.frequencies_hz, (0, padded - n), mode="edge")
     carrier = None
     if "turbulence" in effects:
-        carrier = jnp.pad(turbulence_phase(key, n, scene.settings.turbulence_rad_per_sqrt_frame),
-                          (0, padded - n), mode="edge")
+        carrier = jnp.pad(
+            turbulence_phase(key, n, scene.settings.turbulence_rad_per_sqrt_frame), (0, padded - n), mode="edge"
+        )
     frames_key = jax.random.fold_in(key, _KEY_FRAMES)
 
     def launch(m0):
-        return _frames_chunk(instrument, scene.settings, returns, jnp.asarray(freqs), carrier,
-                             jnp.asarray(m0), frames_key, num_frames=chunk, effects=effects)
+        return _frames_chunk(
+            true,
+            scene.settings,
+            returns,
+            jnp.asarray(freqs),
+            carrier,
+            jnp.asarray(m0),
+            frames_key,
+            num_frames=chunk,
+            effects=effects,
+        )
 
     pending = launch(0)
     for m0 in range(0, n, chunk):
@@ -250,18 +266,20 @@ def iter_frame_chunks(scene: Scene, instrument: Instrument, height: int, width: 
         yield m0, m1, np.asarray(current)[:, : m1 - m0].reshape(4, m1 - m0, height, width)
 
 
-def simulate(scene: Scene, instrument: Instrument, height: int, width: int, key: PRNGKeyArray,
-             effects=None) -> np.ndarray:
+def simulate(
+    scene: Scene, instrument: Instrument, height: int, width: int, key: PRNGKeyArray, effects=None
+) -> np.ndarray:
     """All frames (4, N, H, W) in memory — for small captures and tests."""
     chunks = [c for _, _, c in iter_frame_chunks(scene, instrument, height, width, key, effects)]
     return np.concatenate(chunks, axis=1)
 
 
 def simulation_truth(scene: Scene, instrument: Instrument, height: int, width: int, effects) -> dict:
-    """Ground truth and the settings a simulated capture was made with (for `truth/`)."""
+    """Ground truth and the true settings a simulated capture was made with (for `truth/`)."""
     effects = parse_effects(effects)
     depth, rho = scene.render(height, width)
-    hybrid = true_hybrid(instrument, scene.settings, effects)
+    true = instrument.truth(effects)
+    hybrid = true.hybrid
     s = scene.settings
     return {
         "depth_m": depth.astype(np.float32),
@@ -274,39 +292,45 @@ def simulation_truth(scene: Scene, instrument: Instrument, height: int, width: i
             "hybrid_relative_gains": np.asarray(hybrid.relative_gains, np.float64),
             "hybrid_offsets_dn": np.asarray(hybrid.offsets_dn, np.float64) + float(instrument.sensor.adc_offset_dn),
             "dn_per_electron": float(instrument.sensor.dn_per_electron),
-            "beta_rolloff_3db_hz": float(s.beta_rolloff_3db_hz) if "beta_rolloff" in effects else float("inf"),
-            "misregistration_px_px_deg": np.asarray(_ccd_transforms(s, effects)[1:] or np.zeros((0, 3))),
+            "beta_rolloff_3db_hz": float(true.modulator.rolloff_3db_hz),
+            "misregistration_px_px_deg": np.asarray(instrument.errors.ccd_transforms(effects)[1:] or np.zeros((0, 3))),
             "turbulence_rad_per_sqrt_frame": float(s.turbulence_rad_per_sqrt_frame) if "turbulence" in effects else 0.0,
             "radial_velocity_m_per_s": float(s.radial_velocity_m_per_s) if "motion" in effects else 0.0,
         },
     }
 
 
-__all__ = ["Returns", "build_returns", "expected_port_electrons", "sensor_readout", "simulate",
-           "iter_frame_chunks", "simulation_truth", "true_hybrid", "turbulence_phase", "NOMINAL_PHASES_RAD"]
-
-
-def simulate_to_file(path, scene: Scene, instrument: Instrument, height: int, width: int, seed: int = 0,
-                     effects=None, progress: bool = True):
-    """Simulate a capture and write it as format v1 (atomically, in frame chunks)."""
-    from .capture import write_capture
+def simulate_to_file(
+    path,
+    scene: Scene,
+    instrument: Instrument,
+    height: int,
+    width: int,
+    seed: int = 0,
+    effects=None,
+    progress: bool = True,
+):
+    """Simulate a capture and write it as format v1 (atomically, in frame chunks): the frames
+    of the true instrument, the header of the described one (`capture.capture_attributes`),
+    the truth under `truth/`."""
+    from .capture import capture_attributes, write_capture
 
     effects = scene.effects if effects is None else parse_effects(effects)
     key = jax.random.key(seed)
-    sensor = instrument.sensor
-    mzm = instrument.modulator
-    attrs = {
-        "exposure_s": float(sensor.exposure_s), "frame_rate_hz": float(instrument.frame_rate_hz),
-        "wavelength_m": float(sensor.wavelength_m), "field_of_view_deg": np.asarray(instrument.field_of_view_deg),
-        "modulation_index": float(mzm.modulation_index), "bias_rad": float(mzm.bias_rad),
-        "sideband_max_order": int(mzm.max_order), "adc_bits": int(sensor.adc_bits),
-        "dn_per_electron": float(sensor.dn_per_electron), "simulated": True,
-    }
     returns = build_returns(scene, instrument, height, width, effects, key)
     chunk = frame_chunk_size(returns, instrument.sweep.num_steps)
     dtype = np.uint16 if "quantization" in effects else np.float32
-    chunks = iter_frame_chunks(scene, instrument, height, width, key, effects, chunk_frames=chunk)
-    return write_capture(path, chunks, frequencies_hz=instrument.sweep.frequencies_hz, height=height, width=width,
-                         dtype=dtype, attrs=attrs, hybrid_phases_rad=np.asarray(instrument.hybrid.phases_rad),
-                         truth=simulation_truth(scene, instrument, height, width, effects),
-                         frames_per_chunk=chunk, progress=progress)
+    chunks = iter_frame_chunks(scene, instrument, height, width, key, effects, chunk_frames=chunk, returns=returns)
+    return write_capture(
+        path,
+        chunks,
+        frequencies_hz=instrument.sweep.frequencies_hz,
+        height=height,
+        width=width,
+        dtype=dtype,
+        attrs={**capture_attributes(instrument), "simulated": True},
+        hybrid_phases_rad=np.asarray(instrument.hybrid.phases_rad),
+        truth=simulation_truth(scene, instrument, height, width, effects),
+        frames_per_chunk=chunk,
+        progress=progress,
+    )

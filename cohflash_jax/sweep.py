@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -14,13 +15,19 @@ class FrequencySweep(eqx.Module):
     """An increasing schedule of microwave frequencies, one per frame (Hz, float64).
 
     Uniform sweeps (f_m = f_0 + m·Δf) are the usual case; any strictly increasing
-    schedule is legal. The schedule is a float64 NumPy array (a pytree leaf, traced under
-    jit); the properties below are host-side and read its concrete values.
+    schedule is legal. A concrete schedule is validated and held as a float64 NumPy array (a
+    pytree leaf, traced under jit); the properties below are host-side and read its values.
+    A schedule built from traced values (inside `jax.vmap` or `jax.jit`, as the design's
+    gradient search does) is held as it is and checked by nobody: only `frequencies_hz`,
+    `num_steps` and `as_array` are meaningful for it.
     """
 
     frequencies_hz: np.ndarray
 
     def __init__(self, frequencies_hz):
+        if isinstance(frequencies_hz, jax.core.Tracer):
+            self.frequencies_hz = frequencies_hz
+            return
         f = np.asarray(frequencies_hz, dtype=np.float64)
         validate_frequencies(f)
         self.frequencies_hz = f
@@ -85,9 +92,13 @@ class FrequencySweep(eqx.Module):
         return jnp.asarray(self.frequencies_hz, dtype=jnp.float64)
 
     def __repr__(self) -> str:  # short: frequency arrays are long
+        if isinstance(self.frequencies_hz, jax.core.Tracer):
+            return f"FrequencySweep(traced, N={self.num_steps})"
         kind = "uniform" if self.is_uniform else "non-uniform"
-        return (f"FrequencySweep({kind}, N={self.num_steps}, {self.start_hz/1e9:.4g}–"
-                f"{self.frequencies_hz[-1]/1e9:.4g} GHz, Δf={self.step_hz/1e6:.4g} MHz)")
+        return (
+            f"FrequencySweep({kind}, N={self.num_steps}, {self.start_hz / 1e9:.4g}–"
+            f"{self.frequencies_hz[-1] / 1e9:.4g} GHz, Δf={self.step_hz / 1e6:.4g} MHz)"
+        )
 
 
 def validate_frequencies(f: np.ndarray) -> None:
@@ -102,5 +113,6 @@ def validate_frequencies(f: np.ndarray) -> None:
         raise ValueError("frequencies must be non-negative")
     if np.any(np.diff(f) <= 0):
         bad = int(np.argmax(np.diff(f) <= 0))
-        raise ValueError(f"frequencies must be strictly increasing (step {bad}→{bad+1}: "
-                         f"{f[bad]:.6g} Hz → {f[bad+1]:.6g} Hz)")
+        raise ValueError(
+            f"frequencies must be strictly increasing (step {bad}→{bad + 1}: {f[bad]:.6g} Hz → {f[bad + 1]:.6g} Hz)"
+        )

@@ -4,7 +4,7 @@ where the likelihood of the phase-locked model has several ripples and the CRLB'
 Data of a pixel: the unitary DFT windows (the ML fit's W bins) of the carrier-aligned in-phase
 sequence r and of its quadrature q. Model: Z·e^{−iφ̂} = e^{iδφ}·(c + A·T(τ)), i.e.
 R̂ = cos δφ·M and Q̂ = sin δφ·M with M = c·D₀ + A·T the phase-locked window model of
-`estimate.ml`, and white Gaussian noise of the variance measured in q. Sampled: the depth
+`estimate.window_model`, and white Gaussian noise of the variance measured in q. Sampled: the depth
 offset from the ML estimate (mm), the amplitude A ≥ 0 and the carrier-phase residual
 δφ ∈ (−π, π]. The offset c — linear, flat prior — is marginalised analytically (for a Gaussian
 likelihood that is its profile up to a constant); sampling it would leave emcee a flat
@@ -27,10 +27,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .calibration_file import PixelMaps
+from .constants import SPEED_OF_LIGHT_M_PER_S as C
 from .estimate.coarse import unitary_rfft
 from .estimate.iq import align_carrier_static, derotate, iq_from_frames
-from .estimate.ml import UniformModel, _bin_weights, window_tables
-from .reconstruct import BAD_DATA, DEAD, OK, SATURATED, STATUS, TileConfig, process_tile
+from .estimate.window_model import UniformModel, bin_weights, window_tables
+from .instrument import Instrument
+from .reconstruct import ReconstructOptions, TilePlan, build_plan, process_tile
+from .status import UNUSABLE_DATA, Status
 
 PARAMETERS = ("depth_offset_mm", "amplitude", "carrier_phase_rad")
 LABELS = ("depth − ML (mm)", "amplitude A (DN)", "carrier phase δφ (rad)")
@@ -50,25 +54,27 @@ class PixelData(eqx.Module):
 
 
 @eqx.filter_jit
-def pixel_data(cfg: TileConfig, frames, dark=None) -> PixelData:
-    """ML results and the DFT windows of r and q for pixels (4, N, P) → PixelData (leading P)."""
-    out = process_tile(cfg, frames, dark)
+def pixel_data(plan: TilePlan, frames, window_bins: int, dark=None, gain=None) -> PixelData:
+    """ML results and the DFT windows (`window_bins` wide) of r and q for pixels (4, N, P),
+    with their per-pixel offsets and gains (4, P) where given → PixelData (leading P)."""
+    out = process_tile(plan, frames, dark, None, gain)
     n = frames.shape[1]
-    i, q = iq_from_frames(frames.astype(jnp.float32), cfg.iq_weights, cfg.iq_bias, dark)
+    i, q = iq_from_frames(frames.astype(jnp.float32), plan.iq.weights, plan.iq.bias, dark, gain)
     _, _, phase = align_carrier_static(i, q)
     r, qr = derotate(i, q, phase[None, :])
     spec_r, spec_q = unitary_rfft(r), unitary_rfft(qr)
     k_count = spec_r.shape[-1]
-    w = min(cfg.window_bins, k_count)
-    m = cfg.model
-    tau = 2 * out["depth_m"] / 299_792_458.0 + m.system_delay_s
-    frac = jnp.mod(tau * m.step_hz * cfg.dominant_order, 1.0)  # cycles per frame of the dominant tone
+    w = min(window_bins, k_count)
+    m = plan.model
+    tau = 2 * out["depth_m"] / C + m.system_delay_s
+    frac = jnp.mod(tau * m.step_hz * plan.geometry.dominant_order, 1.0)  # cycles per frame of the dominant tone
     peak = jnp.round(jnp.minimum(frac, 1 - frac) * n).astype(int)
     k0 = jnp.clip(peak - w // 2, 0, k_count - w)
     take = lambda s: jnp.take_along_axis(s, k0[:, None] + jnp.arange(w), axis=-1).astype(jnp.complex128)
     noise_var = jnp.var(qr, axis=0).astype(jnp.float64)
-    return PixelData(take(spec_r), take(spec_q), k0, out["depth_m"], out["amplitude"], noise_var,
-                     out["sigma_m"], out["fit_status"])
+    return PixelData(
+        take(spec_r), take(spec_q), k0, out["depth_m"], out["amplitude"], noise_var, out["sigma_m"], out["fit_status"]
+    )
 
 
 @eqx.filter_jit
@@ -76,16 +82,18 @@ def _tone_table(model: UniformModel, k0, depths_m, width: int):
     """The tone's window T(depth) (G, W) for unit amplitude, the DC column and bin weights."""
     tables = window_tables(k0, width, model.num_frames)
     tone = jax.vmap(lambda d: model.tone_column(d, tables))(depths_m)
-    return tone, model.dc_column(tables), _bin_weights(tables, model.num_frames)
+    return tone, model.dc_column(tables), bin_weights(tables, model.num_frames)
 
 
-def _log_posterior(table, dc, omega4, y, noise_var, table_start_mm, table_step_mm, ml_depth_m,
-                   depth_half_range_m, ambiguity_m, thetas):
+def _log_posterior(
+    table, dc, omega4, y, noise_var, table_start_mm, table_step_mm, ml_depth_m, depth_half_range_m, ambiguity_m, thetas
+):
     """Log-posterior of walkers `thetas` (B, 3); the amplitude is in the units of `y`;
     `omega4` are the bin weights tiled over the four stacked parts (Re/Im of r and q).
 
     NumPy, not jitted JAX: emcee calls it twice a step on ~16 walkers × 68 numbers, where a
-    jitted call costs 120–200 µs of dispatch and transfer (measured) for microseconds of work."""
+    jitted call's dispatch and transfer cost far more than the microseconds of work
+    (docs/performance.md)."""
     offset_mm, amp, dphi = thetas[:, 0], thetas[:, 1], thetas[:, 2]
     pos = (offset_mm - table_start_mm) / table_step_mm
     idx = np.clip(np.floor(pos).astype(int), 0, table.shape[0] - 2)
@@ -98,25 +106,44 @@ def _log_posterior(table, dc, omega4, y, noise_var, table_start_mm, table_step_m
     col = stack(c * dc[None, :], s * dc[None, :])
     e = e - col * (np.sum(col * e, axis=-1) / (np.sum(col * col, axis=-1) + 1e-300))[:, None]
     depth = ml_depth_m + 1e-3 * offset_mm
-    ok = (amp >= 0) & (np.abs(dphi) <= np.pi) & (np.abs(1e-3 * offset_mm) <= depth_half_range_m) \
-        & (depth >= 0) & (depth < ambiguity_m)
+    ok = (
+        (amp >= 0)
+        & (np.abs(dphi) <= np.pi)
+        & (np.abs(1e-3 * offset_mm) <= depth_half_range_m)
+        & (depth >= 0)
+        & (depth < ambiguity_m)
+    )
     return np.where(ok, -np.sum(e * e, axis=-1) / noise_var, -np.inf)
 
 
-def make_log_prob(model: UniformModel, data: PixelData, *, depth_half_range_m: float, ambiguity_m: float,
-                  ripple_m: float):
+def make_log_prob(
+    model: UniformModel, data: PixelData, *, depth_half_range_m: float, ambiguity_m: float, ripple_m: float
+):
     """Vectorised log-posterior over walkers for emcee (NumPy; the table is built with JAX)."""
     order = max(1, model.weights.shape[0] - 1)
     step_mm = 1e3 * min(ripple_m, depth_half_range_m) / (order * 1000)
     half_mm = 1e3 * depth_half_range_m
     grid = np.arange(-half_mm, half_mm + 2 * step_mm, step_mm)
-    table, dc, omega = _tone_table(model, data.k0, data.ml_depth_m + 1e-3 * jnp.asarray(grid),
-                                   int(data.r_window.shape[0]))
+    table, dc, omega = _tone_table(
+        model, data.k0, data.ml_depth_m + 1e-3 * jnp.asarray(grid), int(data.r_window.shape[0])
+    )
     omega4 = np.tile(np.asarray(omega), 4)  # once per pixel, not per emcee call
-    y = np.concatenate([np.real(data.r_window), np.imag(data.r_window), np.real(data.q_window),
-                        np.imag(data.q_window)]) * omega4
-    args = (np.asarray(table), np.asarray(dc), omega4, y, float(data.noise_var), float(grid[0]),
-            float(step_mm), float(data.ml_depth_m), depth_half_range_m, ambiguity_m)
+    y = (
+        np.concatenate([np.real(data.r_window), np.imag(data.r_window), np.real(data.q_window), np.imag(data.q_window)])
+        * omega4
+    )
+    args = (
+        np.asarray(table),
+        np.asarray(dc),
+        omega4,
+        y,
+        float(data.noise_var),
+        float(grid[0]),
+        float(step_mm),
+        float(data.ml_depth_m),
+        depth_half_range_m,
+        ambiguity_m,
+    )
 
     def log_prob(thetas):
         return _log_posterior(*args, np.asarray(thetas, np.float64))
@@ -153,17 +180,29 @@ def _check_max_steps(max_steps: int):
         raise ValueError(f"max_steps must be ≥ 1 (emcee steps a pixel), got {max_steps}")
 
 
-def sample_pixel(model: UniformModel, data: PixelData, *, ambiguity_m: float, bin_depth_m: float, ripple_m: float,
-                 rng: np.random.Generator, nwalkers: int = 32, batch: int = 500, max_steps: int = 20000,
-                 backend=None) -> Posterior:
+def sample_pixel(
+    model: UniformModel,
+    data: PixelData,
+    *,
+    ambiguity_m: float,
+    bin_depth_m: float,
+    ripple_m: float,
+    rng: np.random.Generator,
+    nwalkers: int = 32,
+    batch: int = 500,
+    max_steps: int = 20000,
+    backend=None,
+) -> Posterior:
     """emcee posterior of one pixel. Runs until the chain is ≥ 50 integrated autocorrelation
     times long and τ has settled (emcee's guidance), else warns at `max_steps`."""
     _check_max_steps(max_steps)
     half_range = 2 * bin_depth_m
-    log_prob = make_log_prob(model, data, depth_half_range_m=half_range, ambiguity_m=ambiguity_m,
-                             ripple_m=ripple_m)
-    amp0 = float(data.ml_amplitude) if np.isfinite(data.ml_amplitude) and data.ml_amplitude > 0 \
+    log_prob = make_log_prob(model, data, depth_half_range_m=half_range, ambiguity_m=ambiguity_m, ripple_m=ripple_m)
+    amp0 = (
+        float(data.ml_amplitude)
+        if np.isfinite(data.ml_amplitude) and data.ml_amplitude > 0
         else float(np.sqrt(data.noise_var))
+    )
     crlb = float(data.crlb_m)
     sigma_mm = 1e3 * crlb if np.isfinite(crlb) and crlb > 0 else 100 * ripple_m
     sigma_mm = min(sigma_mm, 0.25e3 * ripple_m)
@@ -188,12 +227,18 @@ def sample_pixel(model: UniformModel, data: PixelData, *, ambiguity_m: float, bi
     bad = ~np.isfinite(log_prob(p0))
     p0[bad, 0], p0[bad, 2] = rng.normal(0, min(sigma_mm, 0.1 * half_range * 1e3), bad.sum()), 0.0
     sampler = emcee.EnsembleSampler(nwalkers, 3, log_prob, vectorize=True, backend=backend)
+    # emcee seeds its moves from NumPy's global generator unless told: seed it from `rng`, so a
+    # posterior is reproducible for a given seed
+    sampler.random_state = np.random.RandomState(int(rng.integers(2**32))).get_state()
     state, old_tau, converged, tau = p0, np.full(3, np.inf), False, np.full(3, np.nan)
     while sampler.iteration < max_steps:
         state = sampler.run_mcmc(state, batch, progress=False)
         tau = sampler.get_autocorr_time(tol=0)
-        if np.all(np.isfinite(tau)) and sampler.iteration >= 50 * np.max(tau) and \
-                np.all(np.abs(old_tau - tau) / tau < 0.05):
+        if (
+            np.all(np.isfinite(tau))
+            and sampler.iteration >= 50 * np.max(tau)
+            and np.all(np.abs(old_tau - tau) / tau < 0.05)
+        ):
             converged = True
             break
         old_tau = tau
@@ -203,10 +248,12 @@ def sample_pixel(model: UniformModel, data: PixelData, *, ambiguity_m: float, bi
     samples = sampler.get_chain(discard=burn, thin=thin, flat=True)
     note = ""
     if not converged:
-        note = (f"not converged after {sampler.iteration} steps (τ ≈ {tau_max:.0f} steps; 50τ needed): "
-                "treat the intervals as indicative")
+        note = (
+            f"not converged after {sampler.iteration} steps (τ ≈ {tau_max:.0f} steps; 50τ needed): "
+            "treat the intervals as indicative"
+        )
         warnings.warn(note, stacklevel=2)
-    if int(data.status) != OK:
+    if int(data.status) != Status.OK:
         note = (note + "; " if note else "") + "the ML fit flagged this pixel (low SNR or bad data)"
     depth = float(data.ml_depth_m) + 1e-3 * samples[:, 0]
     q = np.percentile(depth, [2.5, 16, 50, 84, 97.5])
@@ -215,65 +262,117 @@ def sample_pixel(model: UniformModel, data: PixelData, *, ambiguity_m: float, bi
     cell = np.round((depth - np.median(depth)) / (0.5 * ripple_m)).astype(int)
     counts = np.bincount(cell - cell.min())
     occupied = np.flatnonzero(counts >= 0.02 * depth.size)
-    multimodal = bool(occupied.size > 1 and np.any(np.diff(occupied) > 1)) or \
-        bool(occupied.size > 1 and (q[4] - q[0]) > 0.75 * ripple_m)
-    return Posterior(samples, float(data.ml_depth_m), float(depth.mean()), float(q[2]), (float(q[1]), float(q[3])),
-                     (float(q[0]), float(q[4])), crlb, multimodal, converged, tau_max,
-                     float(np.mean(sampler.acceptance_fraction)), int(sampler.iteration), note, int(data.status))
+    multimodal = bool(occupied.size > 1 and np.any(np.diff(occupied) > 1)) or bool(
+        occupied.size > 1 and (q[4] - q[0]) > 0.75 * ripple_m
+    )
+    return Posterior(
+        samples,
+        float(data.ml_depth_m),
+        float(depth.mean()),
+        float(q[2]),
+        (float(q[1]), float(q[3])),
+        (float(q[0]), float(q[4])),
+        crlb,
+        multimodal,
+        converged,
+        tau_max,
+        float(np.mean(sampler.acceptance_fraction)),
+        int(sampler.iteration),
+        note,
+        int(data.status),
+    )
 
 
 # -- a set of pixels from a capture, the posterior file and the figures -----------------------
-POSTERIOR_FIELDS = ("row", "col", "ml_depth_m", "mean_m", "median_m", "lo68_m", "hi68_m", "lo95_m", "hi95_m",
-                    "crlb_m", "multimodal", "converged", "autocorr_steps", "acceptance", "steps")
+POSTERIOR_FIELDS = (
+    "row",
+    "col",
+    "ml_depth_m",
+    "mean_m",
+    "median_m",
+    "lo68_m",
+    "hi68_m",
+    "lo95_m",
+    "hi95_m",
+    "crlb_m",
+    "multimodal",
+    "converged",
+    "autocorr_steps",
+    "acceptance",
+    "steps",
+)
 
 
-# pixels whose data cannot carry a posterior: the likelihood's noise model does not hold
-UNUSABLE_DATA = (BAD_DATA, SATURATED, DEAD)
-
-
-def run_pixels(capture, pixels, options, *, seed: int = 0, max_steps: int = 20000, chains_path=None,
-               progress: bool = True):
-    """Posteriors of (row, col) pixels of an open capture → (results, skipped): a list of
-    (row, col, Posterior) and one of (row, col, reason) for pixels whose data are unusable
-    (NaN/inf, saturated or dead: `UNUSABLE_DATA`), which are not sampled. Raises ValueError
-    when no pixel is usable.
+def run_pixels(
+    capture,
+    pixels,
+    options: ReconstructOptions,
+    *,
+    instrument: Instrument | None = None,
+    maps: PixelMaps | None = None,
+    seed: int = 0,
+    max_steps: int = 20000,
+    chains_path=None,
+    progress: bool = True,
+):
+    """Posteriors of (row, col) pixels of an open capture for `instrument` (default: the
+    capture's own; a calibrated one from `Calibration.apply`, with its `maps`, gives the
+    posteriors `reconstruct --calibration` would give ML depths for) → (results, skipped): a
+    list of (row, col, Posterior) and one of (row, col, reason) for pixels whose data are
+    unusable (NaN/inf, saturated or dead: `status.UNUSABLE_DATA`), which are not sampled.
+    Raises ValueError when no pixel is usable or a pixel is named twice.
 
     Frames of each pixel are read on their own (4 × N values), so any set of pixels costs
     what it reads. `chains_path` keeps every chain in emcee's HDF5 backend, one group per pixel."""
     from tqdm.auto import tqdm
-
-    from .hybrid import Hybrid
-    from .reconstruct import build_config, modulator_from_attrs
 
     _check_max_steps(max_steps)
     n, h, w = capture.shape
     for r, c in pixels:
         if not (0 <= r < h and 0 <= c < w):
             raise ValueError(f"pixel ({r}, {c}) is outside the {h}×{w} capture")
-    cfg = build_config(capture.frequencies_hz, Hybrid(tuple(capture.hybrid_phases_rad)),
-                       modulator_from_attrs(capture.attrs), 0.0, capture.saturation_dn, options)
-    if not cfg.uniform:
+    repeated = sorted({p for p in pixels if pixels.count(p) > 1})
+    if repeated:
+        raise ValueError("pixel(s) named more than once: " + ", ".join(f"({r}, {c})" for r, c in repeated))
+    instrument = capture.instrument() if instrument is None else instrument
+    maps = PixelMaps(capture.dark) if maps is None else maps
+    maps.check_shape(h, w, "per-pixel maps")
+    plan = build_plan(maps.apply(instrument), options, capture.saturation_dn)
+    if not plan.geometry.uniform:
         raise ValueError("posteriors are implemented for uniform sweeps (the DFT-window likelihood)")
-    ripple = 299_792_458.0 / (2 * float(np.mean(capture.frequencies_hz)))
+    rows, cols = np.asarray([r for r, _ in pixels]), np.asarray([c for _, c in pixels])
     frames = np.stack([capture.frames[:, :, r, c] for r, c in pixels], axis=-1)  # (4, N, P)
-    data = pixel_data(cfg, jnp.asarray(frames))
+    per_pixel = lambda a: None if a is None else jnp.asarray(np.asarray(a, np.float32)[:, rows, cols])
+    data = pixel_data(plan, jnp.asarray(frames), options.window_bins, per_pixel(maps.offset_dn), per_pixel(maps.gain))
     status = np.asarray(data.status)
     unusable = np.isin(status, UNUSABLE_DATA)
-    skipped = [(*pixels[p], STATUS[int(status[p])]) for p in np.flatnonzero(unusable)]
+    skipped = [(*pixels[p], Status(int(status[p])).message) for p in np.flatnonzero(unusable)]
     usable = np.flatnonzero(~unusable)
     if not usable.size:
-        raise ValueError("no pixel with usable data: " + ", ".join(f"({r}, {c}) {why}" for r, c, why in skipped[:10])
-                         + (" …" if len(skipped) > 10 else ""))
+        raise ValueError(
+            "no pixel with usable data: "
+            + ", ".join(f"({r}, {c}) {why}" for r, c, why in skipped[:10])
+            + (" …" if len(skipped) > 10 else "")
+        )
     rng = np.random.default_rng(seed)
+    g = plan.geometry
     results = []
     for p in tqdm(usable, unit="px", desc="posterior", disable=not progress):
         r, c = pixels[p]
-        d = jax.tree_util.tree_map(lambda x: x[p], data)
+        d = jax.tree_util.tree_map(lambda x, p=p: x[p], data)
         backend = None if chains_path is None else emcee.backends.HDFBackend(str(chains_path), name=f"pixel_{r}_{c}")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # emcee's autocorrelation on short chains
-            post = sample_pixel(cfg.model, d, ambiguity_m=cfg.ambiguity_m, bin_depth_m=cfg.bin_depth_m,
-                                ripple_m=ripple, rng=rng, max_steps=max_steps, backend=backend)
+            post = sample_pixel(
+                plan.model,
+                d,
+                ambiguity_m=g.ambiguity_m,
+                bin_depth_m=g.bin_depth_m,
+                ripple_m=g.ripple_m,
+                rng=rng,
+                max_steps=max_steps,
+                backend=backend,
+            )
         results.append((r, c, post))
     return results, skipped
 
@@ -294,11 +393,23 @@ def write_posteriors(path, results, meta: dict):
             f.attrs[k] = v
         rows = {k: [] for k in POSTERIOR_FIELDS}
         for r, c, post in results:
-            values = dict(row=r, col=c, ml_depth_m=post.ml_depth_m, mean_m=post.mean_m, median_m=post.median_m,
-                          lo68_m=post.interval68_m[0], hi68_m=post.interval68_m[1], lo95_m=post.interval95_m[0],
-                          hi95_m=post.interval95_m[1], crlb_m=post.crlb_m, multimodal=post.multimodal,
-                          converged=post.converged, autocorr_steps=post.autocorr_steps, acceptance=post.acceptance,
-                          steps=post.steps)
+            values = dict(
+                row=r,
+                col=c,
+                ml_depth_m=post.ml_depth_m,
+                mean_m=post.mean_m,
+                median_m=post.median_m,
+                lo68_m=post.interval68_m[0],
+                hi68_m=post.interval68_m[1],
+                lo95_m=post.interval95_m[0],
+                hi95_m=post.interval95_m[1],
+                crlb_m=post.crlb_m,
+                multimodal=post.multimodal,
+                converged=post.converged,
+                autocorr_steps=post.autocorr_steps,
+                acceptance=post.acceptance,
+                steps=post.steps,
+            )
             for k in POSTERIOR_FIELDS:
                 rows[k].append(values[k])
             g = f.create_dataset(f"samples/pixel_{r}_{c}", data=post.samples.astype(np.float32))
@@ -331,8 +442,12 @@ def plot_posterior(path, post: Posterior, title: str = ""):
     ax.set_xlabel("depth − ML estimate (mm)")
     ax.set_ylabel("density")
     ax.legend(fontsize=8)
-    ax.set_title(title or f"68 % (--) and 95 % (:) intervals; {'multimodal' if post.multimodal else 'unimodal'}"
-                 + ("" if post.converged else ", NOT converged"), fontsize=9)
+    ax.set_title(
+        title
+        or f"68 % (--) and 95 % (:) intervals; {'multimodal' if post.multimodal else 'unimodal'}"
+        + ("" if post.converged else ", NOT converged"),
+        fontsize=9,
+    )
     sub = plt.figure(figsize=(6, 6))
     corner.corner(post.samples, labels=list(LABELS), fig=sub, quantiles=(0.16, 0.5, 0.84), show_titles=False)
     sub.canvas.draw()

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from cohflash_experiments import study_parser
 import cohflash_jax as cf
-from cohflash_jax.calibration_file import Calibration
+from cohflash_experiments import study_parser
+from cohflash_jax.calibration_file import Calibration, CaptureSetup
 from cohflash_jax.capture import Capture
 from cohflash_jax.fileio import save_figure, write_csv
 from cohflash_jax.hybrid_fit import calibrate_hybrid
@@ -35,10 +35,12 @@ DISTANCE_M = 30.5
 
 
 def variants(full: Calibration) -> dict[str, Calibration | None]:
-    return {"none": None,
-            "τ_sys": Calibration(None, full.system_delay_s, None),
-            "τ_sys + hybrid": Calibration(full.hybrid, full.system_delay_s, None),
-            "τ_sys + hybrid + modulator": full}
+    return {
+        "none": None,
+        "τ_sys": Calibration(None, full.system_delay_s, None),
+        "τ_sys + hybrid": Calibration(full.hybrid, full.system_delay_s, None),
+        "τ_sys + hybrid + modulator": full,
+    }
 
 
 def run(out: Path, size: int, seeds: int):
@@ -59,11 +61,24 @@ def run(out: Path, size: int, seeds: int):
             valid_frac = {name: [] for name in variants(full)}
             for seed in range(seeds):
                 path = tmp / f"{condition}{seed}.h5"
-                simulate_to_file(path, cf.planar(DISTANCE_M, 0.5, effects=NOISE + ERRORS + extra), inst, size, size,
-                                 seed=seed, progress=False)
+                simulate_to_file(
+                    path,
+                    cf.planar(DISTANCE_M, 0.5, effects=NOISE + ERRORS + extra),
+                    inst,
+                    size,
+                    size,
+                    seed=seed,
+                    progress=False,
+                )
                 with Capture(path) as cap:
                     for name, calib in variants(full).items():
-                        outputs, _ = reconstruct_capture(cap, ReconstructOptions(tracking=tracking, progress=False), calib)
+                        setup = CaptureSetup.of(cap, calib)
+                        outputs = reconstruct_capture(
+                            cap,
+                            ReconstructOptions(tracking=tracking, progress=False),
+                            setup.instrument,
+                            maps=setup.maps,
+                        ).outputs
                         ok = outputs["valid"]
                         valid_frac[name].append(ok.mean())
                         errors[name].append(outputs["depth_m"][ok] - DISTANCE_M)
@@ -73,37 +88,62 @@ def run(out: Path, size: int, seeds: int):
                 sig = np.concatenate(sigmas[name])
                 # a robust spread as well: uncalibrated turbulent pixels slip ripples
                 mad = 1.4826 * np.median(np.abs(err - np.median(err))) if err.size else np.nan
-                rows.append({"condition": condition, "calibration": name, "valid_fraction": float(np.mean(valid_frac[name])),
-                             "bias_mm": 1e3 * float(np.mean(err)) if err.size else np.nan,
-                             "precision_mm": 1e3 * float(np.std(err)) if err.size else np.nan,
-                             "robust_precision_mm": 1e3 * float(mad),
-                             "median_crlb_mm": 1e3 * float(np.median(sig)) if sig.size else np.nan,
-                             "pixels": int(err.size)})
+                rows.append(
+                    {
+                        "condition": condition,
+                        "calibration": name,
+                        "valid_fraction": float(np.mean(valid_frac[name])),
+                        "bias_mm": 1e3 * float(np.mean(err)) if err.size else np.nan,
+                        "precision_mm": 1e3 * float(np.std(err)) if err.size else np.nan,
+                        "robust_precision_mm": 1e3 * float(mad),
+                        "median_crlb_mm": 1e3 * float(np.median(sig)) if sig.size else np.nan,
+                        "pixels": int(err.size),
+                    }
+                )
     write_csv(out / "hybrid_study.csv", rows)
     fit = doc["fit"]
     hyb = doc["hybrid"]
-    md = [f"Calibration capture: 16×16 px × 3000 frames, uniform target at {DISTANCE_M} m (ρ = 0.9), carrier "
-          f"drift ({fit['carrier_drift']}); hybrid χ²/dof {fit['hybrid_chi2_per_dof']:.3f}.",
-          "", "| parameter | fitted | true |", "|---|---|---|"]
-    true_phase = np.degrees(np.asarray(cf.Hybrid().phases_rad) + np.asarray(cf.EffectSettings().hybrid_phase_error_rad))
+    md = [
+        f"Calibration capture: 16×16 px × 3000 frames, uniform target at {DISTANCE_M} m (ρ = 0.9), carrier "
+        f"drift ({fit['carrier_drift']}); hybrid χ²/dof {fit['hybrid_chi2_per_dof']:.3f}.",
+        "",
+        "| parameter | fitted | true |",
+        "|---|---|---|",
+    ]
+    true_phase = np.degrees(np.asarray(cf.Hybrid().phases_rad) + np.asarray(inst.errors.hybrid_phase_error_rad))
     if hyb["phases_rad"] is not None:
         for k in range(1, 4):
-            md.append(f"| CCD {k + 1} phase (°) | {np.degrees(hyb['phases_rad'][k]):.3f} ± "
-                      f"{np.degrees(hyb['phases_sigma_rad'][k]):.3f} | {true_phase[k]:.3f} |")
-            md.append(f"| CCD {k + 1} gain | {hyb['relative_gains'][k]:.4f} ± {hyb['relative_gains_sigma'][k]:.4f} | "
-                      f"{cf.EffectSettings().hybrid_relative_gains[k]:.4f} |")
+            md.append(
+                f"| CCD {k + 1} phase (°) | {np.degrees(hyb['phases_rad'][k]):.3f} ± "
+                f"{np.degrees(hyb['phases_sigma_rad'][k]):.3f} | {true_phase[k]:.3f} |"
+            )
+            md.append(
+                f"| CCD {k + 1} gain | {hyb['relative_gains'][k]:.4f} ± {hyb['relative_gains_sigma'][k]:.4f} | "
+                f"{inst.errors.hybrid_gain_factors[k]:.4f} |"
+            )
     mod = doc["modulator"]
     md.append(f"| β | {mod['modulation_index']['value']:.3f} ± {mod['modulation_index']['sigma']:.3f} | 2.000 |")
-    md.append(f"| f_3dB (GHz) | {mod['rolloff_3db_hz']['value'] / 1e9:.3f} ± {mod['rolloff_3db_hz']['sigma'] / 1e9:.3f} "
-              f"| {cf.EffectSettings().beta_rolloff_3db_hz / 1e9:.3f} |")
+    md.append(
+        f"| f_3dB (GHz) | {mod['rolloff_3db_hz']['value'] / 1e9:.3f} ± {mod['rolloff_3db_hz']['sigma'] / 1e9:.3f} "
+        f"| {inst.errors.modulator_rolloff_3db_hz / 1e9:.3f} |"
+    )
     d = doc["system_delay_s"]
-    md.append(f"| path offset (mm) | {d['value'] * cf.SPEED_OF_LIGHT_M_PER_S / 2 * 1e3:.3f} ± "
-              f"{d['sigma'] * cf.SPEED_OF_LIGHT_M_PER_S / 2 * 1e3:.3f} | {PATH_OFFSET_M * 1e3:.3f} |")
-    md += ["", f"Test captures: planar {DISTANCE_M} m, paper link budget (ρ = 0.5), {size}×{size} px × {seeds} seeds, ML.",
-           "", "| condition | calibration | valid | bias (mm) | precision (mm) | robust σ (mm) | CRLB (mm) |",
-           "|---|---|---|---|---|---|---|"]
-    md += [f"| {r['condition']} | {r['calibration']} | {r['valid_fraction']:.0%} | {r['bias_mm']:+.3f} | "
-           f"{r['precision_mm']:.3f} | {r['robust_precision_mm']:.3f} | {r['median_crlb_mm']:.3f} |" for r in rows]
+    md.append(
+        f"| path offset (mm) | {d['value'] * cf.SPEED_OF_LIGHT_M_PER_S / 2 * 1e3:.3f} ± "
+        f"{d['sigma'] * cf.SPEED_OF_LIGHT_M_PER_S / 2 * 1e3:.3f} | {PATH_OFFSET_M * 1e3:.3f} |"
+    )
+    md += [
+        "",
+        f"Test captures: planar {DISTANCE_M} m, paper link budget (ρ = 0.5), {size}×{size} px × {seeds} seeds, ML.",
+        "",
+        "| condition | calibration | valid | bias (mm) | precision (mm) | robust σ (mm) | CRLB (mm) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    md += [
+        f"| {r['condition']} | {r['calibration']} | {r['valid_fraction']:.0%} | {r['bias_mm']:+.3f} | "
+        f"{r['precision_mm']:.3f} | {r['robust_precision_mm']:.3f} | {r['median_crlb_mm']:.3f} |"
+        for r in rows
+    ]
     (out / "hybrid_study.md").write_text("\n".join(md) + "\n")
     _plot(out / "hybrid_study.png", rows)
     print("\n".join(md))
@@ -123,8 +163,9 @@ def _plot(path, rows):
         sel = [next(r for r in rows if r["condition"] == condition and r["calibration"] == n) for n in names]
         axes[0].bar(x + 0.4 * j - 0.2, [abs(r["bias_mm"]) for r in sel], 0.4, label=condition)
         axes[1].bar(x + 0.4 * j - 0.2, [r["precision_mm"] for r in sel], 0.4, label=condition)
-        axes[1].plot(x + 0.4 * j - 0.2, [r["median_crlb_mm"] for r in sel], "k_", ms=20,
-                     label="CRLB" if j == 0 else None)
+        axes[1].plot(
+            x + 0.4 * j - 0.2, [r["median_crlb_mm"] for r in sel], "k_", ms=20, label="CRLB" if j == 0 else None
+        )
     for ax, title in zip(axes, ("|bias| (mm)", "precision (mm)")):
         ax.set_yscale("log")
         ax.set_xticks(x, names, rotation=15)

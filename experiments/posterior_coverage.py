@@ -13,12 +13,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from cohflash_experiments import study_parser
 import cohflash_jax as cf
+from cohflash_experiments import study_parser
 from cohflash_jax.fileio import write_csv
-from cohflash_jax.hybrid import Hybrid
-from cohflash_jax.modulator import MZM
-from cohflash_jax.reconstruct import ReconstructOptions, build_config, process_tile
+from cohflash_jax.reconstruct import ReconstructOptions, build_plan, process_tile
 from cohflash_jax.uncertainty import pixel_data, sample_pixel
 
 NOISE = ("shot_noise", "read_noise", "dark_current", "quantization")
@@ -30,37 +28,58 @@ def run(out: Path, pixels: int, reflectance: float, seed: int):
     width = 20
     height = -(-pixels // width)
     frames = cf.simulate(cf.planar(reflectance=reflectance, effects=NOISE), inst, height, width, jax.random.key(seed))
-    cfg = build_config(inst.sweep.frequencies_hz, Hybrid(), MZM(), 0.0, 16383.0, ReconstructOptions(method="ml"))
+    options = ReconstructOptions(method="ml")
+    plan = build_plan(inst, options, saturation_dn=float(inst.sensor.adc_max_dn))
     x = jax.numpy.asarray(frames.reshape(4, 3000, -1))
-    jax.block_until_ready(process_tile(cfg, x, None))
+    jax.block_until_ready(process_tile(plan, x, None))
     t0 = time.perf_counter()
-    jax.block_until_ready(process_tile(cfg, x, None))
+    jax.block_until_ready(process_tile(plan, x, None))
     ml_per_pixel = (time.perf_counter() - t0) / x.shape[-1]
-    data = pixel_data(cfg, x)
+    data = pixel_data(plan, x, options.window_bins)
     rng = np.random.default_rng(seed)
     rows = []
     t0 = time.perf_counter()
     for p in range(x.shape[-1]):
-        d = jax.tree_util.tree_map(lambda a: a[p], data)
+        d = jax.tree_util.tree_map(lambda a, p=p: a[p], data)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            post = sample_pixel(cfg.model, d, ambiguity_m=cfg.ambiguity_m, bin_depth_m=cfg.bin_depth_m,
-                                ripple_m=inst.sweep.ripple_period_m, rng=rng)
-        rows.append({"pixel": p, "covered68": post.covers(30.5, 68), "covered95": post.covers(30.5, 95),
-                     "half68_over_crlb": (post.interval68_m[1] - post.interval68_m[0]) / 2 / post.crlb_m,
-                     "converged": post.converged, "multimodal": post.multimodal, "steps": post.steps,
-                     "tau": post.autocorr_steps})
+            post = sample_pixel(
+                plan.model,
+                d,
+                ambiguity_m=plan.geometry.ambiguity_m,
+                bin_depth_m=plan.geometry.bin_depth_m,
+                ripple_m=plan.geometry.ripple_m,
+                rng=rng,
+            )
+        rows.append(
+            {
+                "pixel": p,
+                "covered68": post.covers(30.5, 68),
+                "covered95": post.covers(30.5, 95),
+                "half68_over_crlb": (post.interval68_m[1] - post.interval68_m[0]) / 2 / post.crlb_m,
+                "converged": post.converged,
+                "multimodal": post.multimodal,
+                "steps": post.steps,
+                "tau": post.autocorr_steps,
+            }
+        )
     seconds = (time.perf_counter() - t0) / len(rows)
     write_csv(out / "coverage.csv", rows)
     c68 = np.mean([r["covered68"] for r in rows])
     c95 = np.mean([r["covered95"] for r in rows])
     n = len(rows)
-    print(f"{n} pixels, reflectance {reflectance}: 68 % coverage {c68:.3f} (±{np.sqrt(0.68 * 0.32 / n):.3f} binomial), "
-          f"95 % coverage {c95:.3f} (±{np.sqrt(0.95 * 0.05 / n):.3f}); median 68 % half-width / CRLB "
-          f"{np.median([r['half68_over_crlb'] for r in rows]):.3f}; converged {np.mean([r['converged'] for r in rows]):.0%}; "
-          f"multimodal {np.mean([r['multimodal'] for r in rows]):.0%}; median τ {np.median([r['tau'] for r in rows]):.0f} steps")
-    print(f"time per pixel: emcee {seconds:.2f} s (median steps {np.median([r['steps'] for r in rows]):.0f}) "
-          f"vs ML fit {ml_per_pixel * 1e6:.0f} µs → {seconds / ml_per_pixel:,.0f}× the ML cost")
+    print(
+        f"{n} pixels, reflectance {reflectance}: 68 % coverage {c68:.3f} (±{np.sqrt(0.68 * 0.32 / n):.3f} binomial), "
+        f"95 % coverage {c95:.3f} (±{np.sqrt(0.95 * 0.05 / n):.3f}); median 68 % half-width / CRLB "
+        f"{np.median([r['half68_over_crlb'] for r in rows]):.3f}; "
+        f"converged {np.mean([r['converged'] for r in rows]):.0%}; "
+        f"multimodal {np.mean([r['multimodal'] for r in rows]):.0%}; "
+        f"median τ {np.median([r['tau'] for r in rows]):.0f} steps"
+    )
+    print(
+        f"time per pixel: emcee {seconds:.2f} s (median steps {np.median([r['steps'] for r in rows]):.0f}) "
+        f"vs ML fit {ml_per_pixel * 1e6:.0f} µs → {seconds / ml_per_pixel:,.0f}× the ML cost"
+    )
 
 
 def main():

@@ -17,51 +17,57 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from cohflash_experiments import study_parser
 import cohflash_jax as cf
+from cohflash_experiments import study_parser
 from cohflash_jax.constants import SPEED_OF_LIGHT_M_PER_S as C
 from cohflash_jax.fileio import write_csv
-from cohflash_jax.estimate.ml import crlb_frequency_only_m, crlb_phase_locked_m
-from cohflash_jax.reconstruct import (DEFAULT_SNR_THRESHOLD_DB, ReconstructOptions, applied_snr_threshold_db,
-                                      reconstruct_array)
+from cohflash_jax.fisher import crlb_frequency_only_m, crlb_phase_locked_m, iq_noise_and_tone_amplitude
+from cohflash_jax.reconstruct import (
+    DEFAULT_SNR_THRESHOLD_DB,
+    ReconstructOptions,
+    applied_snr_threshold_db,
+    reconstruct_array,
+)
 
 NOISE = ("shot_noise", "read_noise", "dark_current", "quantization")
-
-
-def closed_form_noise_and_amplitude(inst: cf.Instrument, reflectance: float, distance_m: float = 30.5):
-    """Per-sample σ of I (electrons) and tone amplitude a = √(N_l N_e)·2w₁ (DESIGN.md §1), from
-    the instrument's settings alone — also the tests' independent truth for the CRLB checks."""
-    s, link, mzm = inst.sensor, inst.link, inst.modulator
-    n_ref = float(s.electrons(link.reference_power_per_pixel_w))
-    n_echo = float(s.electrons(link.echo_power_w(distance_m, reflectance)))
-    port = 0.25 * (n_ref + n_echo) * float(mzm.mean_transmission()) + float(s.dark_electrons)
-    var_i = 2 * (port + float(s.read_noise_e) ** 2 + (1 / float(s.dn_per_electron)) ** 2 / 12)
-    return np.sqrt(var_i), np.sqrt(n_ref * n_echo) * 2 * float(mzm.weights()[1])
 
 
 def run(out: Path, seeds: int, size: int = 16):
     out.mkdir(parents=True, exist_ok=True)
     inst = cf.Instrument.paper(3000)
-    sigma, amp = closed_form_noise_and_amplitude(inst, 0.5)
+    sigma, amp = iq_noise_and_tone_amplitude(inst, 30.5, 0.5)
     crlb = crlb_phase_locked_m(inst.sweep.frequencies_hz, amp, sigma)
     crlb_f = crlb_frequency_only_m(3000, inst.sweep.step_hz, amp, sigma)
     frames = [cf.simulate(cf.planar(effects=NOISE), inst, size, size, jax.random.key(s)) for s in range(seeds)]
     rows = []
     for method in ("dft", "interp", "ml"):
         opts = ReconstructOptions(method=method, progress=False)
-        err = np.concatenate([reconstruct_array(f, inst.sweep.frequencies_hz, opts)["depth_m"].ravel() - 30.5
-                              for f in frames])
-        rows.append({"method": method, "pixels": err.size, "precision_mm": 1e3 * err.std(),
-                     "bias_mm": 1e3 * err.mean(), "x_crlb_phase_locked": err.std() / crlb,
-                     "x_crlb_frequency_only": err.std() / crlb_f})
+        err = np.concatenate([reconstruct_array(f, inst, opts)["depth_m"].ravel() - 30.5 for f in frames])
+        rows.append(
+            {
+                "method": method,
+                "pixels": err.size,
+                "precision_mm": 1e3 * err.std(),
+                "bias_mm": 1e3 * err.mean(),
+                "x_crlb_phase_locked": err.std() / crlb,
+                "x_crlb_frequency_only": err.std() / crlb_f,
+            }
+        )
     write_csv(out / "precision.csv", rows)
-    md = ["| method | pixels | precision (mm) | bias (mm) | × phase-locked CRLB | × frequency-only CRLB |",
-          "|---|---|---|---|---|---|"]
-    md += [f"| {r['method']} | {r['pixels']} | {r['precision_mm']:.3f} | {r['bias_mm']:+.3f} | "
-           f"{r['x_crlb_phase_locked']:.2f} | {r['x_crlb_frequency_only']:.2f} |" for r in rows]
-    md.append(f"\nPlanar target at 30.5 m, paper link budget (0.64 pW reference, 0.26 fW echo per pixel, "
-              f"4 ms, 3000 steps 0.1–6.0 GHz); CRLB phase-locked {crlb * 1e3:.3f} mm, frequency-only "
-              f"{crlb_f * 1e3:.3f} mm (closed forms from the instrument's settings).")
+    md = [
+        "| method | pixels | precision (mm) | bias (mm) | × phase-locked CRLB | × frequency-only CRLB |",
+        "|---|---|---|---|---|---|",
+    ]
+    md += [
+        f"| {r['method']} | {r['pixels']} | {r['precision_mm']:.3f} | {r['bias_mm']:+.3f} | "
+        f"{r['x_crlb_phase_locked']:.2f} | {r['x_crlb_frequency_only']:.2f} |"
+        for r in rows
+    ]
+    md.append(
+        f"\nPlanar target at 30.5 m, paper link budget (0.64 pW reference, 0.26 fW echo per pixel, "
+        f"4 ms, 3000 steps 0.1–6.0 GHz); CRLB phase-locked {crlb * 1e3:.3f} mm, frequency-only "
+        f"{crlb_f * 1e3:.3f} mm (closed forms from the instrument's settings)."
+    )
     (out / "precision.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 
@@ -69,18 +75,30 @@ def run(out: Path, seeds: int, size: int = 16):
     opts = ReconstructOptions(method="ml", progress=False, snr_threshold_db=-100)
     trows = []
     for rho in (0.5, 0.2, 0.1, 0.07, 0.05, 0.035, 0.025, 0.015, 0.01):
-        s_i, a_i = closed_form_noise_and_amplitude(inst, rho)
+        s_i, a_i = iq_noise_and_tone_amplitude(inst, 30.5, rho)
         bound = crlb_phase_locked_m(inst.sweep.frequencies_hz, a_i, s_i)
-        res = [reconstruct_array(cf.simulate(cf.planar(reflectance=rho, effects=NOISE), inst, size, size,
-                                             jax.random.key(100 + s)), inst.sweep.frequencies_hz, opts)
-               for s in range(seeds)]
+        res = [
+            reconstruct_array(
+                cf.simulate(cf.planar(reflectance=rho, effects=NOISE), inst, size, size, jax.random.key(100 + s)),
+                inst,
+                opts,
+            )
+            for s in range(seeds)
+        ]
         err = np.concatenate([r["depth_m"].ravel() - 30.5 for r in res])
         snr = np.concatenate([r["snr"].ravel() for r in res])
         outlier = np.abs(err) > 5 * bound
-        trows.append({"reflectance": rho, "median_snr_db": 10 * np.log10(np.median(snr)),
-                      "crlb_mm": 1e3 * bound, "inlier_std_mm": 1e3 * err[~outlier].std(),
-                      "x_crlb": err[~outlier].std() / bound, "outlier_fraction": outlier.mean(),
-                      "max_snr_db_of_outliers": 10 * np.log10(snr[outlier].max()) if outlier.any() else float("nan")})
+        trows.append(
+            {
+                "reflectance": rho,
+                "median_snr_db": 10 * np.log10(np.median(snr)),
+                "crlb_mm": 1e3 * bound,
+                "inlier_std_mm": 1e3 * err[~outlier].std(),
+                "x_crlb": err[~outlier].std() / bound,
+                "outlier_fraction": outlier.mean(),
+                "max_snr_db_of_outliers": 10 * np.log10(snr[outlier].max()) if outlier.any() else float("nan"),
+            }
+        )
     write_csv(out / "threshold.csv", trows)
     import matplotlib
 
@@ -92,8 +110,13 @@ def run(out: Path, seeds: int, size: int = 16):
     ax.plot(x, [r["x_crlb"] for r in trows], "o-", label="ML inlier std / CRLB")
     ax.plot(x, [r["outlier_fraction"] for r in trows], "s-", label="outlier fraction (|err| > 5 CRLB)")
     applied_db = applied_snr_threshold_db(DEFAULT_SNR_THRESHOLD_DB, inst.sweep.frequencies_hz.size)
-    ax.axvline(applied_db, color="0.5", ls="--", label=f"default validity threshold {applied_db:.2f} dB "
-               f"({DEFAULT_SNR_THRESHOLD_DB:g} dB + noise-estimate margin)")
+    ax.axvline(
+        applied_db,
+        color="0.5",
+        ls="--",
+        label=f"default validity threshold {applied_db:.2f} dB "
+        f"({DEFAULT_SNR_THRESHOLD_DB:g} dB + noise-estimate margin)",
+    )
     ax.set_xlabel("measured peak-bin SNR (dB)")
     ax.set_ylim(0, 2)
     ax.legend()
@@ -105,20 +128,10 @@ def run(out: Path, seeds: int, size: int = 16):
     ten_hz_threshold(out, seeds)
 
 
-def ten_hz_mode() -> cf.Instrument:
-    """The paper's 10 Hz mode as the benchmark runs it: 35 frames over 0.17–6 GHz (f_0 = Δf),
-    350 frames/s, 2 ms exposures, 10× the paper's probe power."""
-    from cohflash_jax.radiometry import PAPER_PROBE_POWER_W, LinkBudget
-
-    n = 35
-    return cf.Instrument(sweep=cf.FrequencySweep.uniform(6e9 / n, 6e9 / n, n), frame_rate_hz=350.0,
-                         sensor=cf.Sensor(exposure_s=2e-3), link=LinkBudget(probe_power_w=10 * PAPER_PROBE_POWER_W))
-
-
 def ten_hz_threshold(out: Path, seeds: int, size: int = 64, distance_m: float = 30.5):
     """Outliers (|err| > 5 CRLB) among valid-but-for-SNR pixels above candidate thresholds, on
     the planar target in the 35-frame mode as its reflectance falls."""
-    inst = ten_hz_mode()
+    inst = cf.Instrument.ten_hz_mode()
     f = inst.sweep.frequencies_hz
     period = C / (2 * inst.sweep.step_hz)  # the comb's model repeats every c/(2Δf) of depth
     folded = distance_m % period
@@ -126,22 +139,39 @@ def ten_hz_threshold(out: Path, seeds: int, size: int = 64, distance_m: float = 
     opts = ReconstructOptions(method="ml", progress=False, snr_threshold_db=-100)
     snr_db, outlier = [], []
     for rho in (0.35, 0.25, 0.18, 0.12, 0.08, 0.05, 0.03):
-        s_i, a_i = closed_form_noise_and_amplitude(inst, rho, distance_m)
+        s_i, a_i = iq_noise_and_tone_amplitude(inst, distance_m, rho)
         bound = crlb_phase_locked_m(f, a_i, s_i)
         for seed in range(seeds):
-            res = reconstruct_array(cf.simulate(cf.planar(distance_m=distance_m, reflectance=rho, effects=NOISE), inst,
-                                                size, size, jax.random.key(11 + seed)), f, opts)
-            ok = res["fit_status"].ravel() == 0
+            res = reconstruct_array(
+                cf.simulate(
+                    cf.planar(distance_m=distance_m, reflectance=rho, effects=NOISE),
+                    inst,
+                    size,
+                    size,
+                    jax.random.key(11 + seed),
+                ),
+                inst,
+                opts,
+            )
+            ok = res["fit_status"].ravel() == cf.Status.OK
             snr_db.append(10 * np.log10(np.maximum(res["snr"].ravel()[ok], 1e-30)))
             outlier.append(np.abs(res["depth_m"].ravel()[ok] - truth) > 5 * bound)
     snr_db, outlier = np.concatenate(snr_db), np.concatenate(outlier)
     applied = applied_snr_threshold_db(DEFAULT_SNR_THRESHOLD_DB, f.size)
-    rows = [{"threshold_db": t, "pixels_above": int((snr_db >= t).sum()), "outliers_above": int(outlier[snr_db >= t].sum()),
-             "default_applied": bool(abs(t - applied) < 1e-9)}
-            for t in sorted({12.0, 13.0, 14.0, 15.0, 16.0, float(applied)})]
+    rows = [
+        {
+            "threshold_db": t,
+            "pixels_above": int((snr_db >= t).sum()),
+            "outliers_above": int(outlier[snr_db >= t].sum()),
+            "default_applied": bool(abs(t - applied) < 1e-9),
+        }
+        for t in sorted({12.0, 13.0, 14.0, 15.0, 16.0, float(applied)})
+    ]
     write_csv(out / "threshold_10hz.csv", rows)
-    print(f"35-frame mode, {snr_db.size} pixels: max measured SNR of an outlier "
-          f"{snr_db[outlier].max() if outlier.any() else float('nan'):.2f} dB; default threshold applied {applied:.2f} dB")
+    print(
+        f"35-frame mode, {snr_db.size} pixels: max measured SNR of an outlier "
+        f"{snr_db[outlier].max() if outlier.any() else float('nan'):.2f} dB; default threshold applied {applied:.2f} dB"
+    )
     for r in rows:
         print(r)
 

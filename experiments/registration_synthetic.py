@@ -11,11 +11,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cohflash_experiments import study_parser
 from cohflash_calibration.board import Board
-from cohflash_jax.fileio import write_csv
 from cohflash_calibration.registration import register, save_report, write_registration
 from cohflash_calibration.synthetic import board_poses, default_rig, write_rig_views
+from cohflash_experiments import study_parser
+from cohflash_jax.fileio import write_csv
 
 
 def run(out: Path, views: int, seed: int):
@@ -23,18 +23,37 @@ def run(out: Path, views: int, seed: int):
     board = Board(9, 6, 25.0)
     rig = default_rig()
     rng = np.random.default_rng(seed)
-    dirs = write_rig_views(out / "views", rig, board, board_poses(views, rng, board), rng=rng, bit_depth=16,
-                           black=0.02, white=0.07, background=0.04, noise=0.0005, offset=0.01)
+    dirs = write_rig_views(
+        out / "views",
+        rig,
+        board,
+        board_poses(views, rng, board),
+        rng=rng,
+        bit_depth=16,
+        black=0.02,
+        white=0.07,
+        background=0.04,
+        noise=0.0005,
+        offset=0.01,
+    )
     reg = register(dirs, board, progress=False)
     write_registration(out / "registration.json", reg)
     save_report(out / "report.png", reg)
     rows = []
     for k, (cam, est) in enumerate(zip(rig, reg.cameras), start=1):
         kk, kt = est.camera_matrix, cam.camera_matrix
-        row = {"ccd": k, "fx_err_pct": 100 * (kk[0, 0] / kt[0, 0] - 1), "fy_err_pct": 100 * (kk[1, 1] / kt[1, 1] - 1),
-               "cx_err_pct": 100 * (kk[0, 2] / kt[0, 2] - 1), "cy_err_pct": 100 * (kk[1, 2] / kt[1, 2] - 1),
-               "rms_px": est.rms_px, "rot_err_deg": 0.0, "t_err_mm": 0.0, "xor_before": float("nan"),
-               "xor_after": float("nan")}
+        row = {
+            "ccd": k,
+            "fx_err_pct": 100 * (kk[0, 0] / kt[0, 0] - 1),
+            "fy_err_pct": 100 * (kk[1, 1] / kt[1, 1] - 1),
+            "cx_err_pct": 100 * (kk[0, 2] / kt[0, 2] - 1),
+            "cy_err_pct": 100 * (kk[1, 2] / kt[1, 2] - 1),
+            "rms_px": est.rms_px,
+            "rot_err_deg": 0.0,
+            "t_err_mm": 0.0,
+            "xor_before": float("nan"),
+            "xor_after": float("nan"),
+        }
         if k > 1:
             r, t = reg.R[k - 2], reg.T[k - 2]
             row["rot_err_deg"] = float(np.rad2deg(np.linalg.norm(cv2.Rodrigues(r @ cam.R.T)[0])))
@@ -44,8 +63,10 @@ def run(out: Path, views: int, seed: int):
     write_csv(out / "registration.csv", rows)
     for r in rows:
         print("  ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.items()))
-    print(f"{reg.seconds_per_view * 1e3:.1f} ms per view (detection + calibration + maps + XOR), "
-          f"{views} views × 4 CCDs, 640×512 16-bit")
+    print(
+        f"{reg.seconds_per_view * 1e3:.1f} ms per view (detection + calibration + maps + XOR), "
+        f"{views} views × 4 CCDs, 640×512 16-bit"
+    )
 
 
 def main():

@@ -30,7 +30,7 @@ def test_simulate_cli_writes_a_valid_v1_capture(staircase_capture):
 
 
 def test_independent_dft_peak_gives_true_depth_within_one_bin(staircase_capture):
-    """Plain NumPy, written from DESIGN.md §1 only: I = V0 − V2, Q = V3 − V1, principal
+    """Plain NumPy, written from docs/design-reference.md §1 only: I = V0 − V2, Q = V3 − V1, principal
     axis, rFFT peak → depth = k/(N·Δf)·c/2."""
     with Capture(staircase_capture) as cap:
         frames = cap.read_tile(slice(None)).astype(np.float64)
@@ -69,17 +69,27 @@ def test_read_tile_reads_the_requested_pixels(staircase_capture):
         n, h, w = cap.shape
         buf = np.full((4, n, 6, w), 7, np.uint16)
         cap.read_tile_into(buf, slice(h - 4, h))
-        np.testing.assert_array_equal(buf[:, :, :4], cap.frames[:, :, h - 4:h])
+        np.testing.assert_array_equal(buf[:, :, :4], cap.frames[:, :, h - 4 : h])
         assert np.all(buf[:, :, 4:] == 7)
 
 
 def _write(path, **over):
     n, h, w = 8, 2, 3
     f = h5py.File(path, "w")
-    f.attrs.update({"format": "cohflash-capture", "format_version": 1, "exposure_s": 4e-3, "frame_rate_hz": 150.0,
-                    "wavelength_m": 1.55e-6})
-    data = {"frames": np.zeros((4, n, h, w), np.uint16), "frequencies_hz": 1e8 + 2e6 * np.arange(n),
-            "hybrid_phases_rad": np.array([0, np.pi / 2, np.pi, 1.5 * np.pi])}
+    f.attrs.update(
+        {
+            "format": "cohflash-capture",
+            "format_version": 1,
+            "exposure_s": 4e-3,
+            "frame_rate_hz": 150.0,
+            "wavelength_m": 1.55e-6,
+        }
+    )
+    data = {
+        "frames": np.zeros((4, n, h, w), np.uint16),
+        "frequencies_hz": 1e8 + 2e6 * np.arange(n),
+        "hybrid_phases_rad": np.array([0, np.pi / 2, np.pi, 1.5 * np.pi]),
+    }
     for k, v in over.items():
         if k.startswith("attr_"):
             if v is None:
@@ -95,23 +105,26 @@ def _write(path, **over):
     return path
 
 
-@pytest.mark.parametrize("over,match", [
-    ({"attr_format": "something-else"}, "format"),
-    ({"attr_format_version": 2}, "format_version 2"),
-    ({"attr_exposure_s": None}, "exposure_s"),
-    ({"attr_frame_rate_hz": -1.0}, "frame_rate_hz"),
-    ({"attr_exposure_s": "fast"}, "exposure_s must be a number, got 'fast'"),
-    ({"attr_adc_bits": 40}, "adc_bits must be an integer from 1 to 16"),
-    ({"frames": np.zeros((3, 8, 2, 3), np.uint16)}, r"shape \(4, N, H, W\)"),
-    ({"frames": np.zeros((4, 8, 2, 3), np.int32)}, "dtype"),
-    ({"frames": None}, "frames"),
-    ({"frequencies_hz": np.arange(8.0)[::-1].copy()}, "increasing"),
-    ({"frequencies_hz": np.array([1, 2, 3, np.nan, 5, 6, 7, 8.0])}, "NaN"),
-    ({"frequencies_hz": np.arange(7.0)}, "match frames"),
-    ({"frequencies_hz": np.arange(8, dtype=np.float32)}, "float64"),
-    ({"hybrid_phases_rad": np.zeros(3)}, "hybrid_phases_rad"),
-    ({"dark": np.zeros((4, 5, 5), np.float32)}, "dark"),
-])
+@pytest.mark.parametrize(
+    "over,match",
+    [
+        ({"attr_format": "something-else"}, "format"),
+        ({"attr_format_version": 2}, "format_version 2"),
+        ({"attr_exposure_s": None}, "exposure_s"),
+        ({"attr_frame_rate_hz": -1.0}, "frame_rate_hz"),
+        ({"attr_exposure_s": "fast"}, "exposure_s must be a number, got 'fast'"),
+        ({"attr_adc_bits": 40}, "adc_bits must be an integer from 1 to 16"),
+        ({"frames": np.zeros((3, 8, 2, 3), np.uint16)}, r"shape \(4, N, H, W\)"),
+        ({"frames": np.zeros((4, 8, 2, 3), np.int32)}, "dtype"),
+        ({"frames": None}, "frames"),
+        ({"frequencies_hz": np.arange(8.0)[::-1].copy()}, "increasing"),
+        ({"frequencies_hz": np.array([1, 2, 3, np.nan, 5, 6, 7, 8.0])}, "NaN"),
+        ({"frequencies_hz": np.arange(7.0)}, "match frames"),
+        ({"frequencies_hz": np.arange(8, dtype=np.float32)}, "float64"),
+        ({"hybrid_phases_rad": np.zeros(3)}, "hybrid_phases_rad"),
+        ({"dark": np.zeros((4, 5, 5), np.float32)}, "dark"),
+    ],
+)
 def test_reader_rejects_malformed_files_naming_the_problem(tmp_path, over, match):
     path = _write(tmp_path / "bad.h5", **over)
     with pytest.raises(CaptureError, match=match):
@@ -136,8 +149,16 @@ def test_interrupted_write_keeps_the_old_file_and_leaves_no_partial(tmp_path):
         raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        write_capture(path, chunks(), frequencies_hz=1e8 + 2e6 * np.arange(8), height=2, width=2, dtype=np.uint16,
-                      attrs={"exposure_s": 4e-3, "frame_rate_hz": 150.0, "wavelength_m": 1.55e-6}, progress=False)
+        write_capture(
+            path,
+            chunks(),
+            frequencies_hz=1e8 + 2e6 * np.arange(8),
+            height=2,
+            width=2,
+            dtype=np.uint16,
+            attrs={"exposure_s": 4e-3, "frame_rate_hz": 150.0, "wavelength_m": 1.55e-6},
+            progress=False,
+        )
     assert path.read_bytes() == b"previous result"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cap.h5"]
 
@@ -149,8 +170,22 @@ def test_simulate_cli_rejects_bad_arguments(tmp_path, capsys):
         main(["simulate", "staircase", "--steps", "1", "--out", str(tmp_path / "a.h5")])
     with pytest.raises(SystemExit):
         main(["simulate", "staircase", "--size", "64by64", "--out", str(tmp_path / "a.h5")])
-    assert main(["simulate", "staircase", "--out", str(tmp_path / "missing" / "a.h5"), "--steps", "4",
-                 "--size", "2x2", "--quiet"]) == 2
+    assert (
+        main(
+            [
+                "simulate",
+                "staircase",
+                "--out",
+                str(tmp_path / "missing" / "a.h5"),
+                "--steps",
+                "4",
+                "--size",
+                "2x2",
+                "--quiet",
+            ]
+        )
+        == 2
+    )
     assert not (tmp_path / "a.h5").exists()
 
 

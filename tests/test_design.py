@@ -12,9 +12,9 @@ import cohflash_jax as cf
 from cohflash_jax import design
 from cohflash_jax.cli import main
 from cohflash_jax.constants import SPEED_OF_LIGHT_M_PER_S as C
-from cohflash_jax.estimate.ml import crlb_frequency_only_m, crlb_phase_locked_m
 from cohflash_jax.fisher import depth_crlb_m
-from cohflash_experiments.precision_table import closed_form_noise_and_amplitude
+
+from .closed_forms import closed_form_noise_and_amplitude, crlb_frequency_only_m, crlb_phase_locked_m
 
 
 def test_autodiff_fisher_equals_closed_form(paper_instrument):
@@ -22,12 +22,13 @@ def test_autodiff_fisher_equals_closed_form(paper_instrument):
     closed-form phase-locked and frequency-only bounds of a real tone in white noise."""
     f = paper_instrument.sweep.frequencies_hz
     sigma, amp = closed_form_noise_and_amplitude(paper_instrument, 0.5)
-    locked = float(depth_crlb_m(paper_instrument, f, 30.5, 0.5, range_falloff=False))
-    freq_only = float(depth_crlb_m(paper_instrument, f, 30.5, 0.5, frequency_only=True, range_falloff=False))
+    locked = float(depth_crlb_m(paper_instrument, 30.5, 0.5, range_falloff=False))
+    freq_only = float(depth_crlb_m(paper_instrument, 30.5, 0.5, frequency_only=True, range_falloff=False))
     assert locked == pytest.approx(crlb_phase_locked_m(f, amp, sigma), rel=2e-3)
-    assert freq_only == pytest.approx(float(crlb_frequency_only_m(f.size, paper_instrument.sweep.step_hz, amp, sigma)),
-                                      rel=2e-3)
-    assert 1.9 < freq_only / locked < 2.2  # DESIGN.md §1: about 2 for 0.1–6 GHz
+    assert freq_only == pytest.approx(
+        float(crlb_frequency_only_m(f.size, paper_instrument.sweep.step_hz, amp, sigma)), rel=2e-3
+    )
+    assert 1.9 < freq_only / locked < 2.2  # docs/design-reference.md §1: about 2 for 0.1–6 GHz
 
 
 def _crlb(**point):
@@ -55,8 +56,9 @@ def test_crlb_scaling_laws():
 
 @pytest.fixture(scope="module")
 def small_design():
-    problem = design.DesignProblem(target_precision_m=1.0e-3, max_range_m=38.0, max_frequency_hz=6e9,
-                                   frame_rate_hz=150.0, max_frames=256)
+    problem = design.DesignProblem(
+        target_precision_m=1.0e-3, max_range_m=38.0, max_frequency_hz=6e9, frame_rate_hz=150.0, max_frames=256
+    )
     return problem, design.optimise_design(problem, progress=False)
 
 
@@ -76,9 +78,8 @@ def test_design_meets_constraints_and_is_optimal(small_design):
     # the monotone resources sit at their limits, as they must for the shortest acquisition
     assert any("probe power" in a for a in result.active_constraints)
     assert any("exposure" in a for a in result.active_constraints)
-    n_cap = 256
-    _, (crlb, coarse, v1, f1) = design._solve_for_n(result.num_frames - 1, n_cap, problem)
-    assert not design._meets(crlb, coarse, f1, problem, v1)
+    _, fewer = design.solve_for_n(result.num_frames - 1, design.frame_cap(problem), problem)
+    assert not design.meets(fewer, problem)
     # exhaustive search over (β, θ_b) at the optimum's sweep, power and exposure
     mask = jnp.ones(result.num_frames)
     fj = jnp.asarray(f)
@@ -88,10 +89,18 @@ def test_design_meets_constraints_and_is_optimal(small_design):
     @jax.jit
     @jax.vmap
     def bound(beta, bias):
-        inst = design._instrument(v["probe_power_w"], v["exposure_s"], beta, bias)
-        fisher = cf.fisher.depth_fisher(inst, fj, problem.distance_m, problem.reflectance, design.NOISE,
-                                        frame_weights=mask)
-        snr = design.mean_term_snr(inst, fj, mask, problem.distance_m, problem.reflectance)
+        inst = design.design_instrument(
+            start_hz=0.0,
+            step_hz=0.0,
+            num_steps=fj.size,
+            probe_power_w=v["probe_power_w"],
+            exposure_s=v["exposure_s"],
+            modulation_index=beta,
+            bias_rad=bias,
+            frequencies_hz=fj,
+        )
+        fisher = cf.fisher.depth_fisher(inst, problem.distance_m, problem.reflectance, frame_weights=mask)
+        snr = design.mean_term_snr(inst, mask, problem.distance_m, problem.reflectance)
         return jnp.where(snr >= snr_floor, cf.fisher.crlb_from_fisher(fisher), jnp.inf)
 
     def grid_min(betas, biases):
@@ -146,14 +155,46 @@ def test_resumed_sweep_equals_uninterrupted(tmp_path):
 
 def test_sweep_cli_and_bad_axes(tmp_path):
     out = tmp_path / "s.csv"
-    assert main(["sweep", "--axis", "num_steps=64,128,256", "--set", "bandwidth_ghz=5.91", "--out", str(out),
-                 "--plot", str(tmp_path / "s.png"), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "sweep",
+                "--axis",
+                "num_steps=64,128,256",
+                "--set",
+                "bandwidth_ghz=5.91",
+                "--out",
+                str(out),
+                "--plot",
+                str(tmp_path / "s.png"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     rows = list(csv.DictReader(open(out)))
     crlb = [float(r["crlb_mm"]) for r in rows]
     assert len(rows) == 3 and crlb[0] > crlb[1] > crlb[2]
     assert (tmp_path / "s.png").stat().st_size > 10_000
-    assert main(["sweep", "--axis", "bandwidth_ghz=2:6:3", "--axis", "distance_m=30:240:3", "--set", "num_steps=256",
-                 "--out", str(tmp_path / "m.csv"), "--plot", str(tmp_path / "m.png"), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "sweep",
+                "--axis",
+                "bandwidth_ghz=2:6:3",
+                "--axis",
+                "distance_m=30:240:3",
+                "--set",
+                "num_steps=256",
+                "--out",
+                str(tmp_path / "m.csv"),
+                "--plot",
+                str(tmp_path / "m.png"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert main(["sweep", "--axis", "warp_speed=1:2:3", "--out", str(tmp_path / "x.csv")]) == 2
     assert main(["sweep", "--axis", "distance_m=a:b", "--out", str(tmp_path / "x.csv")]) == 2
     assert main(["sweep", "--axis", "bandwidth_ghz=2,3", "--set", "step_mhz=1", "--out", str(tmp_path / "x.csv")]) == 2
@@ -163,8 +204,12 @@ def test_sweep_cli_and_bad_axes(tmp_path):
 def test_sweep_heat_map_of_three_axes_is_the_first_slice():
     """Beyond two axes the heat map shows the slice at each further axis's smallest value
     (it used to overwrite the cells with whichever row came last)."""
-    rows = [{"bandwidth_ghz": b, "distance_m": d, "reflectance": r, "crlb_mm": b + 10 * d + 100 * r}
-            for r in (0.2, 0.1) for d in (30.0, 40.0) for b in (6.0, 7.0)]
+    rows = [
+        {"bandwidth_ghz": b, "distance_m": d, "reflectance": r, "crlb_mm": b + 10 * d + 100 * r}
+        for r in (0.2, 0.1)
+        for d in (30.0, 40.0)
+        for b in (6.0, 7.0)
+    ]
     xs, ys, grid, at = design.sweep_heat_map(rows, ["bandwidth_ghz", "distance_m", "reflectance"])
     assert at == {"reflectance": 0.1}
     np.testing.assert_allclose(grid, xs[None, :] + 10 * ys[:, None] + 10.0)
@@ -176,24 +221,63 @@ def test_design_cli(small_design, tmp_path):
     import json
 
     out = tmp_path / "design.json"
-    assert main(["design", "--target-precision-mm", "1.0", "--max-range-m", "38", "--max-frequency-ghz", "6",
-                 "--max-frames", "256", "--validate-trials", "64", "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "design",
+                "--target-precision-mm",
+                "1.0",
+                "--max-range-m",
+                "38",
+                "--max-frequency-ghz",
+                "6",
+                "--max-frames",
+                "256",
+                "--validate-trials",
+                "64",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     doc = json.loads(out.read_text())
     assert doc["feasible"] and doc["num_frames"] == small_design[1].num_frames
     assert doc["unambiguous_range_m"] >= 38.0 and doc["validation"]["mc_trials"] == 64
-    assert main(["design", "--target-precision-mm", "0.001", "--max-range-m", "38", "--max-frequency-ghz", "6",
-                 "--max-frames", "256", "--validate-trials", "0", "--quiet"]) == 1
+    assert (
+        main(
+            [
+                "design",
+                "--target-precision-mm",
+                "0.001",
+                "--max-range-m",
+                "38",
+                "--max-frequency-ghz",
+                "6",
+                "--max-frames",
+                "256",
+                "--validate-trials",
+                "0",
+                "--quiet",
+            ]
+        )
+        == 1
+    )
 
 
-@pytest.mark.parametrize("study", ["paper_fig4", "precision_table", "posterior_coverage", "hybrid_calibration_study",
-                                   "registration_synthetic"])
+@pytest.mark.parametrize(
+    "study",
+    ["paper_fig4", "precision_table", "posterior_coverage", "hybrid_calibration_study", "registration_synthetic"],
+)
 def test_study_scripts_explain_themselves(study):
     """`python -m cohflash_experiments.NAME --help`: the whole docstring and every option's default."""
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, "-m", f"cohflash_experiments.{study}", "--help"], capture_output=True,
-                         text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", f"cohflash_experiments.{study}", "--help"], capture_output=True, text=True, timeout=120
+    )
     assert out.returncode == 0, out.stderr
     assert f"python -m cohflash_experiments.{study}" in out.stdout and "--out OUT" in out.stdout
     lines = out.stdout.splitlines() + [""]

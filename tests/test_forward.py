@@ -8,7 +8,7 @@ import pytest
 
 import cohflash_jax as cf
 from cohflash_jax.constants import SPEED_OF_LIGHT_M_PER_S as C
-from cohflash_jax.simulate import build_returns, expected_port_electrons, sensor_readout, true_hybrid
+from cohflash_jax.simulate import build_returns, expected_port_electrons, sensor_readout
 
 from .conftest import depth_scene
 
@@ -44,8 +44,9 @@ def test_second_harmonic_aliases_as_in_the_paper(paper_instrument):
     depth = C * tau / 2
     spectra = {}
     for effects in (("sidebands",), ()):
-        frames = cf.simulate(cf.from_arrays(np.full((1, 1), depth), effects=effects),
-                             paper_instrument, 1, 1, jax.random.key(0))
+        frames = cf.simulate(
+            cf.from_arrays(np.full((1, 1), depth), effects=effects), paper_instrument, 1, 1, jax.random.key(0)
+        )
         i, q = _iq(frames[:, :, 0, 0])
         r = np.real((i + 1j * q) * np.exp(-1j * np.angle(np.sum((i + 1j * q) ** 2)) / 2))
         spectra[effects] = np.abs(np.fft.rfft(r - r.mean()))
@@ -65,10 +66,11 @@ def test_second_harmonic_aliases_as_in_the_paper(paper_instrument):
 
 @pytest.mark.parametrize("model,mean_e", [("gaussian", 2000.0), ("poisson", 3.0), ("poisson", 2000.0)])
 def test_shot_noise_mean_and_variance_in_electrons(paper_instrument, model, mean_e):
-    inst = eqx.tree_at(lambda i: i.sensor, paper_instrument,
-                       cf.Sensor(dn_per_electron=1.0, adc_offset_dn=0.0, shot_noise_model=model))
+    inst = eqx.tree_at(
+        lambda i: i.sensor, paper_instrument, cf.Sensor(dn_per_electron=1.0, adc_offset_dn=0.0, shot_noise_model=model)
+    )
     e = jnp.full((4, 250_000), mean_e)
-    dn = np.asarray(sensor_readout(jax.random.key(3), e, inst, cf.EffectSettings(), ("shot_noise",)), np.float64)
+    dn = np.asarray(sensor_readout(jax.random.key(3), e, inst, ("shot_noise",)), np.float64)
     n = dn.size
     assert dn.mean() == pytest.approx(mean_e, abs=4 * np.sqrt(mean_e / n))
     assert dn.var() == pytest.approx(mean_e, rel=4 * np.sqrt(2 / n))
@@ -79,8 +81,12 @@ def test_shot_noise_mean_and_variance_in_electrons(paper_instrument, model, mean
 def test_read_and_dark_noise_add_their_variances(paper_instrument):
     inst = eqx.tree_at(lambda i: i.sensor, paper_instrument, cf.Sensor(dn_per_electron=1.0, adc_offset_dn=0.0))
     s = inst.sensor
-    dn = np.asarray(sensor_readout(jax.random.key(4), jnp.full((4, 250_000), 500.0), inst, cf.EffectSettings(),
-                                   ("dark_current", "read_noise", "shot_noise")), np.float64)
+    dn = np.asarray(
+        sensor_readout(
+            jax.random.key(4), jnp.full((4, 250_000), 500.0), inst, ("dark_current", "read_noise", "shot_noise")
+        ),
+        np.float64,
+    )
     dark = float(s.dark_electrons)
     assert dn.mean() == pytest.approx(500 + dark, abs=0.5)
     assert dn.var() == pytest.approx(500 + dark + float(s.read_noise_e) ** 2, rel=0.01)
@@ -89,8 +95,9 @@ def test_read_and_dark_noise_add_their_variances(paper_instrument):
 def _ports(instrument, scene, effects, frames=64):
     returns = build_returns(scene, instrument, 8, 8, effects, jax.random.key(0))
     f = jnp.asarray(instrument.sweep.frequencies_hz[:frames])
-    return expected_port_electrons(instrument, scene.settings, returns, f, jnp.arange(frames, dtype=float), None,
-                                   effects)
+    return expected_port_electrons(
+        instrument.truth(effects), scene.settings, returns, f, jnp.arange(frames, dtype=float), None, effects
+    )
 
 
 def test_common_mode_cancels_in_iq(paper_instrument):
@@ -106,7 +113,7 @@ def test_hybrid_errors_are_undone_by_the_matching_iq_matrix(paper_instrument):
     scene = depth_scene(np.linspace(10, 30, 64))
     ideal_i, ideal_q = _iq(np.asarray(_ports(paper_instrument, scene, ())))
     ports = np.asarray(_ports(paper_instrument, scene, ("hybrid_errors",)))
-    true = true_hybrid(paper_instrument, scene.settings, ("hybrid_errors",))
+    true = paper_instrument.truth(("hybrid_errors",)).hybrid
     dn = ports * np.asarray(true.relative_gains)[:, None, None] + np.asarray(true.offsets_dn)[:, None, None]
     w, b = true.iq_matrix_dn(1.0)
     i = np.einsum("k,knp->np", np.asarray(w[0]), dn) + float(b[0])
@@ -121,8 +128,9 @@ def test_hybrid_errors_are_undone_by_the_matching_iq_matrix(paper_instrument):
 def _electron_gradients(instrument, returns, effects):
     def loss(params):
         inst, ret = params
-        e = expected_port_electrons(inst, cf.EffectSettings(), ret, inst.sweep.as_array()[:32],
-                                    jnp.arange(32.0), None, effects)
+        e = expected_port_electrons(
+            inst.truth(effects), cf.EffectSettings(), ret, inst.sweep.as_array()[:32], jnp.arange(32.0), None, effects
+        )
         return jnp.sum((e[0] - e[2]) ** 2 + (e[3] - e[1]) ** 2)
 
     return eqx.filter_grad(loss)((cf.differentiable(instrument), returns))
@@ -155,9 +163,8 @@ def test_effect_left_out_costs_nothing(paper_instrument):
     program, no key consumed for speckle, and fewer sideband orders without `sidebands`."""
     e = jnp.ones((4, 16, 8))
     settings = cf.EffectSettings()
-    quiet = str(jax.make_jaxpr(lambda k: sensor_readout(k, e, paper_instrument, settings, ()))(jax.random.key(0)))
-    noisy = str(jax.make_jaxpr(lambda k: sensor_readout(k, e, paper_instrument, settings, ("shot_noise",)))(
-        jax.random.key(0)))
+    quiet = str(jax.make_jaxpr(lambda k: sensor_readout(k, e, paper_instrument, ()))(jax.random.key(0)))
+    noisy = str(jax.make_jaxpr(lambda k: sensor_readout(k, e, paper_instrument, ("shot_noise",)))(jax.random.key(0)))
     for marker in ("random_bits", "threefry", "random_wrap"):
         assert marker not in quiet
     assert any(m in noisy for m in ("random_bits", "threefry"))
@@ -167,8 +174,11 @@ def test_effect_left_out_costs_nothing(paper_instrument):
     f = jnp.asarray(paper_instrument.sweep.frequencies_hz[:16])
 
     def program(effects):
-        return str(jax.make_jaxpr(lambda r: expected_port_electrons(
-            paper_instrument, settings, r, f, jnp.arange(16.0), None, effects))(returns))
+        return str(
+            jax.make_jaxpr(
+                lambda r: expected_port_electrons(paper_instrument, settings, r, f, jnp.arange(16.0), None, effects)
+            )(returns)
+        )
 
     assert len(program(())) < len(program(("sidebands",)))
 
@@ -234,19 +244,22 @@ def test_turbulence_is_a_random_walk_of_the_stated_size():
     assert np.std(np.diff(phi)) == pytest.approx(0.05, rel=0.03)
 
 
-@pytest.mark.parametrize("make,match", [
-    (lambda: cf.from_arrays(np.full((4, 4), -1.0)), "depth"),
-    (lambda: cf.from_arrays(np.ones((4, 4)), np.full((4, 4), 2.0)), "reflectance"),
-    (lambda: cf.from_arrays(np.ones(4)), "2-D"),
-    (lambda: cf.LinkBudget(probe_power_w=-1.0), "negative"),
-    (lambda: cf.Sensor(read_noise_e=-3.0), "read_noise"),
-    (lambda: cf.FrequencySweep.uniform(1e8, 2e6, 1), "at least 2"),
-    (lambda: cf.FrequencySweep([1e9, 2e9, 2e9]), "increasing"),
-    (lambda: cf.FrequencySweep([1e9, np.nan]), "NaN"),
-    (lambda: cf.parse_effects("shot_noise,fog"), "known effects: sidebands"),
-    (lambda: cf.get_scene("moon"), "built-in scenes"),
-    (lambda: cf.Hybrid(phases_rad=(0.0, 1.0)), "shape"),
-])
+@pytest.mark.parametrize(
+    "make,match",
+    [
+        (lambda: cf.from_arrays(np.full((4, 4), -1.0)), "depth"),
+        (lambda: cf.from_arrays(np.ones((4, 4)), np.full((4, 4), 2.0)), "reflectance"),
+        (lambda: cf.from_arrays(np.ones(4)), "2-D"),
+        (lambda: cf.LinkBudget(probe_power_w=-1.0), "negative"),
+        (lambda: cf.Sensor(read_noise_e=-3.0), "read_noise"),
+        (lambda: cf.FrequencySweep.uniform(1e8, 2e6, 1), "at least 2"),
+        (lambda: cf.FrequencySweep([1e9, 2e9, 2e9]), "increasing"),
+        (lambda: cf.FrequencySweep([1e9, np.nan]), "NaN"),
+        (lambda: cf.parse_effects("shot_noise,fog"), "known effects: sidebands"),
+        (lambda: cf.get_scene("moon"), "built-in scenes"),
+        (lambda: cf.Hybrid(phases_rad=(0.0, 1.0)), "shape"),
+    ],
+)
 def test_bad_input_gives_a_clear_error(make, match):
     with pytest.raises(ValueError, match=match):
         make()

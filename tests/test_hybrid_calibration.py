@@ -51,7 +51,8 @@ def _pulls(doc, truth):
     hyb, mod = doc["hybrid"], doc["modulator"]
     g, o = np.asarray(truth["hybrid_relative_gains"]), np.asarray(truth["hybrid_offsets_dn"])
     pulls = {
-        "phase": (np.asarray(hyb["phases_rad"]) - truth["hybrid_phases_rad"])[1:] / np.asarray(hyb["phases_sigma_rad"])[1:],
+        "phase": (np.asarray(hyb["phases_rad"]) - truth["hybrid_phases_rad"])[1:]
+        / np.asarray(hyb["phases_sigma_rad"])[1:],
         "gain": (np.asarray(hyb["relative_gains"]) - g)[1:] / np.asarray(hyb["relative_gains_sigma"])[1:],
         "offset": (np.asarray(hyb["offsets_dn"]) - (o - g * o[0]))[1:] / np.asarray(hyb["offsets_sigma_dn"])[1:],
         "beta": (mod["modulation_index"]["value"] - 2.0) / mod["modulation_index"]["sigma"],
@@ -88,8 +89,23 @@ def test_calibration_removes_depth_bias(calibrations, instrument, tmp_path):
     within its standard error (and 30 µm), and the fit uses the calibrated hybrid."""
     cal_path = calibrations[0][0]
     calib = tmp_path / "hybrid.json"
-    assert main(["calibrate", "hybrid", str(cal_path), "--out", str(calib), "--known-distance-m", "30.5",
-                 "--report", str(tmp_path / "report.png"), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "hybrid",
+                str(cal_path),
+                "--out",
+                str(calib),
+                "--known-distance-m",
+                "30.5",
+                "--report",
+                str(tmp_path / "report.png"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert (tmp_path / "report.png").stat().st_size > 10_000
     later = tmp_path / "later.h5"
     scene = cf.planar(30.5, 0.5, effects=NOISE + ERRORS)
@@ -160,8 +176,25 @@ def test_dark_and_flat_maps(instrument, tmp_path, calibrations):
     simulate_to_file(flat, cf.planar(30.5, 0.0, effects=effects), flat_inst, SIZE, SIZE, seed=5, progress=False)
     cal_path, truth, _ = calibrations[0]
     out = tmp_path / "hybrid.h5"
-    assert main(["calibrate", "hybrid", str(cal_path), "--dark", str(dark), "--flat", str(flat),
-                 "--known-distance-m", "30.5", "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "hybrid",
+                str(cal_path),
+                "--dark",
+                str(dark),
+                "--flat",
+                str(flat),
+                "--known-distance-m",
+                "30.5",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     loaded = Calibration.load(out)
     sensor = instrument.sensor
     g = np.asarray(truth["hybrid_relative_gains"])
@@ -170,24 +203,37 @@ def test_dark_and_flat_maps(instrument, tmp_path, calibrations):
     np.testing.assert_allclose(np.median(loaded.gain_map, axis=(1, 2)), 1.0, atol=0.01)
     assert loaded.hybrid.offsets_dn[0] == pytest.approx(expected_dark[0], abs=1.0)
     rec = tmp_path / "rec.h5"
-    assert main(["reconstruct", str(cal_path), "--out", str(rec), "--calibration", str(out), "--tracking",
-                 "--quiet"]) == 0
+    assert (
+        main(["reconstruct", str(cal_path), "--out", str(rec), "--calibration", str(out), "--tracking", "--quiet"]) == 0
+    )
     with h5py.File(rec) as f:
         assert f["valid"][()].mean() > 0.95
         assert abs(np.median(f["depth_m"][()]) - 30.5) < 1e-3
     # JSON cannot hold the maps: it says so and keeps the global values
     with pytest.warns(UserWarning, match="maps"):
-        write_calibration(tmp_path / "h.json", {"format": "cohflash-calibration", "format_version": 1},
-                          {"gain_map": loaded.gain_map})
+        write_calibration(
+            tmp_path / "h.json", {"format": "cohflash-calibration", "format_version": 1}, {"gain_map": loaded.gain_map}
+        )
 
 
 def test_calibration_file_round_trip_and_bad_files(tmp_path):
-    doc = {"format": "cohflash-calibration", "format_version": 1,
-           "hybrid": {"phases_rad": [0, 1.6, 3.1, 4.8], "phases_sigma_rad": [0, 1e-3, 1e-3, 1e-3],
-                      "relative_gains": [1, 1.1, 0.95, 1.05], "offsets_dn": [0, 5, -5, 0]},
-           "modulator": {"modulation_index": {"value": 2.1, "sigma": 0.05}, "bias_rad": {"value": 0.78},
-                         "rolloff_3db_hz": {"value": 8e9, "sigma": 1e8}, "max_order": 3},
-           "system_delay_s": {"value": 1.2e-8, "sigma": 1e-13}}
+    doc = {
+        "format": "cohflash-calibration",
+        "format_version": 1,
+        "hybrid": {
+            "phases_rad": [0, 1.6, 3.1, 4.8],
+            "phases_sigma_rad": [0, 1e-3, 1e-3, 1e-3],
+            "relative_gains": [1, 1.1, 0.95, 1.05],
+            "offsets_dn": [0, 5, -5, 0],
+        },
+        "modulator": {
+            "modulation_index": {"value": 2.1, "sigma": 0.05},
+            "bias_rad": {"value": 0.78},
+            "rolloff_3db_hz": {"value": 8e9, "sigma": 1e8},
+            "max_order": 3,
+        },
+        "system_delay_s": {"value": 1.2e-8, "sigma": 1e-13},
+    }
     maps = {"offset_map_dn": np.full((4, 2, 3), 200.0), "gain_map": np.ones((4, 2, 3))}
     for name in ("c.json", "c.h5"):
         path = write_calibration(tmp_path / name, doc, maps if name.endswith(".h5") else None)
@@ -200,14 +246,16 @@ def test_calibration_file_round_trip_and_bad_files(tmp_path):
     with pytest.raises(ValueError, match="shape"):
         cal.check_shape(4, 4)
     bad = tmp_path / "bad.json"
-    for text, match in ((json.dumps({"format": "other"}), "expected 'cohflash-calibration'"),
-                        ("{broken", "not valid JSON"),
-                        (json.dumps({**doc, "format_version": 7}), "format_version"),
-                        (json.dumps({**doc, "hybrid": {"phases_rad": [0, 1, 2]}}), "shape"),
-                        (json.dumps({**doc, "hybrid": {**doc["hybrid"], "relative_gains": [1, 0, 1, 1]}}), "positive"),
-                        (json.dumps({**doc, "hybrid": {**doc["hybrid"], "offsets_dn": [0, None, 0, 0]}}), "hybrid"),
-                        (json.dumps({**doc, "system_delay_s": {"value": "soon"}}), "system_delay_s"),
-                        (json.dumps({**doc, "system_delay_s": float("nan")}), "system_delay_s")):
+    for text, match in (
+        (json.dumps({"format": "other"}), "expected 'cohflash-calibration'"),
+        ("{broken", "not valid JSON"),
+        (json.dumps({**doc, "format_version": 7}), "format_version"),
+        (json.dumps({**doc, "hybrid": {"phases_rad": [0, 1, 2]}}), "shape"),
+        (json.dumps({**doc, "hybrid": {**doc["hybrid"], "relative_gains": [1, 0, 1, 1]}}), "positive"),
+        (json.dumps({**doc, "hybrid": {**doc["hybrid"], "offsets_dn": [0, None, 0, 0]}}), "hybrid"),
+        (json.dumps({**doc, "system_delay_s": {"value": "soon"}}), "system_delay_s"),
+        (json.dumps({**doc, "system_delay_s": float("nan")}), "system_delay_s"),
+    ):
         bad.write_text(text)
         with pytest.raises(ValueError, match=match):
             Calibration.load(bad)
@@ -231,18 +279,28 @@ def test_turbulence_uncalibrated_flagged_calibrated_valid(calibrations, instrume
     """Under carrier drift an uncalibrated hybrid leaks common mode into I/Q and tracking can
     fail: such pixels must be flagged (poor fit), never valid and wrong. With the calibration
     they are valid and within 5σ of the truth."""
+    from cohflash_jax.calibration_file import CaptureSetup
     from cohflash_jax.reconstruct import ReconstructOptions, reconstruct_capture
 
     path = tmp_path / "turbulent.h5"
-    simulate_to_file(path, cf.planar(30.5, 0.5, effects=NOISE + ERRORS + ("turbulence",)), instrument,
-                     SIZE, SIZE, seed=0, progress=False)
+    simulate_to_file(
+        path,
+        cf.planar(30.5, 0.5, effects=NOISE + ERRORS + ("turbulence",)),
+        instrument,
+        SIZE,
+        SIZE,
+        seed=0,
+        progress=False,
+    )
     full = Calibration.from_document(calibrations[0][2]["document"])
     with Capture(path) as cap:
         for calib in (None, full):
-            out, _ = reconstruct_capture(cap, ReconstructOptions(tracking=True, progress=False), calib)
+            setup = CaptureSetup.of(cap, calib)
+            out = reconstruct_capture(
+                cap, ReconstructOptions(tracking=True, progress=False), setup.instrument, maps=setup.maps
+            ).outputs
             expected = 30.5 + (0.0 if calib is not None else PATH_OFFSET_M)
             wild = np.abs(out["depth_m"] - expected) > 5 * out["sigma_m"]
             assert not np.any(wild & out["valid"])
             if calib is not None:
                 assert out["valid"].mean() > 0.95
-

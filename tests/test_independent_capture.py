@@ -1,5 +1,5 @@
 """Done-when of the depth-inversion issue: a capture written by an independent simulator
-(NumPy + SciPy + h5py, following DESIGN.md §1 and §4 only — no cohflash code) is
+(NumPy + SciPy + h5py, following docs/design-reference.md §1 and §4 only — no cohflash code) is
 reconstructed by `cohflash reconstruct` to within 1.3× its CRLB on a planar target at the
 paper's 30.5 m link budget, with no invalid pixel presented as valid."""
 
@@ -34,8 +34,15 @@ def _independent_capture(path, rng, h=16, w=16, n=3000, depth=30.5):
         e = mean + np.sqrt(mean + read**2) * rng.standard_normal(mean.shape)
         frames[k] = np.clip(np.round(200 + 0.16 * e), 0, 16383)
     with h5py.File(path, "w") as fh:
-        fh.attrs.update({"format": "cohflash-capture", "format_version": 1, "exposure_s": t_e,
-                         "frame_rate_hz": 150.0, "wavelength_m": 1550e-9})
+        fh.attrs.update(
+            {
+                "format": "cohflash-capture",
+                "format_version": 1,
+                "exposure_s": t_e,
+                "frame_rate_hz": 150.0,
+                "wavelength_m": 1550e-9,
+            }
+        )
         fh["frames"] = frames
         fh["frequencies_hz"] = f
         fh["hybrid_phases_rad"] = theta

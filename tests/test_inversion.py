@@ -9,12 +9,12 @@ import pytest
 
 import cohflash_jax as cf
 from cohflash_jax.capture import Capture
-from cohflash_experiments.precision_table import closed_form_noise_and_amplitude
 from cohflash_jax.cli import main
 from cohflash_jax.constants import SPEED_OF_LIGHT_M_PER_S as C
-from cohflash_jax.estimate.ml import crlb_frequency_only_m, crlb_phase_locked_m
-from cohflash_jax.reconstruct import BAD_DATA, DEAD, LOW_SNR, SATURATED, ReconstructOptions, reconstruct_array
+from cohflash_jax.reconstruct import ReconstructOptions, reconstruct_array
+from cohflash_jax.status import Status
 
+from .closed_forms import closed_form_noise_and_amplitude, crlb_frequency_only_m, crlb_phase_locked_m
 from .conftest import N_FRAMES, depth_scene
 
 OPTS = {m: ReconstructOptions(method=m, progress=False) for m in ("dft", "interp", "ml")}
@@ -22,7 +22,7 @@ OPTS = {m: ReconstructOptions(method=m, progress=False) for m in ("dft", "interp
 
 def _reconstruct(frames, instrument, method="ml", **kw):
     options = kw.pop("options", OPTS[method])
-    return reconstruct_array(frames, instrument.sweep.frequencies_hz, options, **kw)
+    return reconstruct_array(frames, instrument, options, **kw)
 
 
 def _depth_at_cycles(cycles_per_frame, step_hz):
@@ -37,7 +37,8 @@ def test_noiseless_ml_is_exact_at_every_hard_depth(paper_instrument, simulate_pi
         _depth_at_cycles(700.5 / n, step),  # bin edge
         _depth_at_cycles(1 / 3, step),  # 2nd harmonic aliases onto the fundamental
         _depth_at_cycles(1 / 4, step),  # 3rd harmonic aliases onto the fundamental
-        0.05, 0.12,  # near 0: the fundamental merges with DC
+        0.05,
+        0.12,  # near 0: the fundamental merges with DC
         paper_instrument.sweep.ambiguity_m - 0.006,  # ½ cycle per frame less a quarter bin
         30.5,
     ]
@@ -84,19 +85,24 @@ def test_dft_and_interp_are_checked_against_truth_too(paper_instrument, planar_m
     sigma, amp = closed_form_noise_and_amplitude(paper_instrument, 0.5)
     freq_only = crlb_frequency_only_m(N_FRAMES, paper_instrument.sweep.step_hz, amp, sigma)
     phase_locked = crlb_phase_locked_m(paper_instrument.sweep.frequencies_hz, amp, sigma)
-    assert 1.8 < freq_only / phase_locked < 2.2  # DESIGN.md §1: ≈ 2 for 0.1–6 GHz
-    interp = np.concatenate([_reconstruct(f, paper_instrument, "interp")["depth_m"].ravel()
-                             for f in planar_monte_carlo]) - 30.5
-    dft = np.concatenate([_reconstruct(f, paper_instrument, "dft")["depth_m"].ravel()
-                          for f in planar_monte_carlo]) - 30.5
+    assert 1.8 < freq_only / phase_locked < 2.2  # docs/design-reference.md §1: ≈ 2 for 0.1–6 GHz
+    interp = (
+        np.concatenate([_reconstruct(f, paper_instrument, "interp")["depth_m"].ravel() for f in planar_monte_carlo])
+        - 30.5
+    )
+    dft = (
+        np.concatenate([_reconstruct(f, paper_instrument, "dft")["depth_m"].ravel() for f in planar_monte_carlo]) - 30.5
+    )
     bin_m = paper_instrument.sweep.bin_depth_m
     assert np.max(np.abs(dft)) <= 0.5 * bin_m + 5 * freq_only
     assert np.std(interp) < 2.5 * freq_only and abs(np.mean(interp)) < 0.05 * bin_m
 
 
 def test_below_threshold_pixels_are_flagged_not_wild(paper_instrument, noise_effects):
-    frames = [cf.simulate(cf.planar(reflectance=rho, effects=noise_effects), paper_instrument, 8, 8,
-                          jax.random.key(7)) for rho in (0.02, 0.005)]
+    frames = [
+        cf.simulate(cf.planar(reflectance=rho, effects=noise_effects), paper_instrument, 8, 8, jax.random.key(7))
+        for rho in (0.02, 0.005)
+    ]
     for f, max_valid in zip(frames, (0.7, 0.1)):
         out = _reconstruct(f, paper_instrument)
         valid = out["valid"]
@@ -115,12 +121,13 @@ def test_zero_echo_is_flagged_everywhere_without_nan(paper_instrument, noise_eff
     frames = simulate_pixels(depth_scene([30.5], reflectance=0.0, effects=noise_effects))
     out = _reconstruct(frames, paper_instrument)
     assert not out["valid"].any()
-    assert np.all(out["fit_status"] == LOW_SNR)
+    assert np.all(out["fit_status"] == Status.LOW_SNR)
     assert all(np.all(np.isfinite(out[k])) for k in ("depth_m", "sigma_m", "amplitude", "snr"))
 
 
-def test_sidebands_leave_no_bias_even_where_harmonics_alias_onto_the_tone(paper_instrument, noise_effects,
-                                                                          simulate_pixels):
+def test_sidebands_leave_no_bias_even_where_harmonics_alias_onto_the_tone(
+    paper_instrument, noise_effects, simulate_pixels
+):
     step = paper_instrument.sweep.step_hz
     depths = [_depth_at_cycles(1 / 3, step) + 0.003, _depth_at_cycles(1 / 4, step) + 0.003]
     for d in depths:
@@ -169,8 +176,8 @@ def test_bad_pixels_are_flagged_and_the_batch_finishes(paper_instrument, planar_
     f[0, 10, 0, 2] = 16383.0  # ADC maximum in one frame
     f[3, :, 0, 3] = 512.0  # dead pixel on one CCD
     out = _reconstruct(f, paper_instrument, saturation_dn=16383.0)
-    assert out["fit_status"][0, 0] == BAD_DATA and out["fit_status"][0, 1] == BAD_DATA
-    assert out["fit_status"][0, 2] == SATURATED and out["fit_status"][0, 3] == DEAD
+    assert out["fit_status"][0, 0] == Status.BAD_DATA and out["fit_status"][0, 1] == Status.BAD_DATA
+    assert out["fit_status"][0, 2] == Status.SATURATED and out["fit_status"][0, 3] == Status.DEAD
     assert not out["valid"][0, :4].any() and out["valid"][1:].all()
     assert all(np.all(np.isfinite(out[k])) for k in ("depth_m", "sigma_m", "amplitude", "snr"))
 
@@ -191,8 +198,23 @@ def test_reconstruct_cli_end_to_end(tmp_path, capsys):
     cap = tmp_path / "p.h5"
     assert main(["simulate", "planar", "--size", "8x8", "--steps", "3000", "--out", str(cap), "--quiet"]) == 0
     out = tmp_path / "depth.h5"
-    rc = main(["reconstruct", str(cap), "--out", str(out), "--png", str(tmp_path / "d.png"), "--ply",
-               str(tmp_path / "d.ply"), "--tiff", str(tmp_path / "d.tiff"), "--quiet", "--tile-rows", "8"])
+    rc = main(
+        [
+            "reconstruct",
+            str(cap),
+            "--out",
+            str(out),
+            "--png",
+            str(tmp_path / "d.png"),
+            "--ply",
+            str(tmp_path / "d.ply"),
+            "--tiff",
+            str(tmp_path / "d.tiff"),
+            "--quiet",
+            "--tile-rows",
+            "8",
+        ]
+    )
     assert rc == 0
     text = capsys.readouterr().out
     assert "unambiguous depths [0.000, 38.045) m" in text
@@ -215,7 +237,9 @@ def test_reconstruct_cli_end_to_end(tmp_path, capsys):
     assert "not found" in capsys.readouterr().err
     assert not (tmp_path / "x.h5").exists()
     # an export into a missing folder is refused before any work, not after depth.h5 is written
-    assert main(["reconstruct", str(cap), "--out", str(tmp_path / "x.h5"), "--ply", str(tmp_path / "no" / "c.ply")]) == 2
+    assert (
+        main(["reconstruct", str(cap), "--out", str(tmp_path / "x.h5"), "--ply", str(tmp_path / "no" / "c.ply")]) == 2
+    )
     assert f"output folder does not exist: {tmp_path / 'no'}" in capsys.readouterr().err
     assert not (tmp_path / "x.h5").exists()
     # an output onto the capture itself is refused: the capture stays as it was
@@ -231,7 +255,7 @@ def test_calibration_file_applies_the_true_hybrid(tmp_path, paper_instrument, no
     forms are refused clearly."""
     import json
 
-    from cohflash_jax.reconstruct import Calibration
+    from cohflash_jax.calibration_file import Calibration
     from cohflash_jax.simulate import simulate_to_file
 
     scene = cf.planar(effects=noise_effects + ("hybrid_errors",))
@@ -240,9 +264,15 @@ def test_calibration_file_applies_the_true_hybrid(tmp_path, paper_instrument, no
     with Capture(cap) as c:
         t = c.truth_attrs
     gain = np.asarray(t["hybrid_relative_gains"]) * float(t["dn_per_electron"])
-    calib = {"format": "cohflash-calibration", "format_version": 1,
-             "hybrid": {"phases_rad": list(t["hybrid_phases_rad"]), "relative_gains": list(gain / gain[0]),
-                        "offsets_dn": list(t["hybrid_offsets_dn"])}}
+    calib = {
+        "format": "cohflash-calibration",
+        "format_version": 1,
+        "hybrid": {
+            "phases_rad": list(t["hybrid_phases_rad"]),
+            "relative_gains": list(gain / gain[0]),
+            "offsets_dn": list(t["hybrid_offsets_dn"]),
+        },
+    }
     path = tmp_path / "hybrid.json"
     path.write_text(json.dumps(calib))
     loaded = Calibration.load(path)
@@ -279,8 +309,15 @@ def test_non_uniform_schedule_noiseless_and_at_the_crlb(sparse_instrument, noise
     # noisy planar target: time-domain ML against the closed-form phase-locked CRLB of this schedule
     sigma, amp = closed_form_noise_and_amplitude(inst, 0.5)
     crlb = crlb_phase_locked_m(inst.sweep.frequencies_hz, amp, sigma)
-    err = np.concatenate([_reconstruct(cf.simulate(cf.planar(effects=noise_effects), inst, 8, 8, jax.random.key(s)),
-                                       inst)["depth_m"].ravel() - 30.5 for s in range(3)])
+    err = np.concatenate(
+        [
+            _reconstruct(cf.simulate(cf.planar(effects=noise_effects), inst, 8, 8, jax.random.key(s)), inst)[
+                "depth_m"
+            ].ravel()
+            - 30.5
+            for s in range(3)
+        ]
+    )
     assert np.std(err) == pytest.approx(crlb, rel=0.2)
     interp = _reconstruct(clean, inst, "interp")
     assert np.max(np.abs(interp["depth_m"].ravel() - depths)) < 0.25 * C / (2 * 5.9e9)
@@ -289,20 +326,20 @@ def test_non_uniform_schedule_noiseless_and_at_the_crlb(sparse_instrument, noise
 def test_sub_tiles_give_the_same_pixels_as_one_tile(paper_instrument, planar_monte_carlo):
     """The streamed path cuts tiles into sub-tiles (the last one padded): per-pixel results
     must not depend on where the cuts fall, for frames and per-pixel maps alike."""
-    from cohflash_jax.hybrid import Hybrid
-    from cohflash_jax.modulator import MZM
-    from cohflash_jax.reconstruct import build_config, dispatch_tile, gather_tile, process_tile
+    from cohflash_jax.reconstruct import TileDispatcher, build_plan, process_tile
 
     f = np.asarray(planar_monte_carlo[2])
     n = f.shape[1]
     frames = f.reshape(4, n, -1)
     dark = np.random.default_rng(0).normal(0.0, 2.0, (4, frames.shape[-1])).astype(np.float32)
     frames[3, :, 5] = 512  # a dead pixel in the first sub-tile
-    cfg = build_config(paper_instrument.sweep.frequencies_hz, Hybrid(), MZM(), 0.0, 16383.0, OPTS["ml"])
-    whole = {k: np.asarray(v) for k, v in process_tile(cfg, jax.numpy.asarray(frames), jax.numpy.asarray(dark)).items()}
-    parts = gather_tile(dispatch_tile(cfg, frames, dark, sub_px=24))  # 24 + 24 + 16 (padded to 24)
+    plan = build_plan(paper_instrument, OPTS["ml"], 16383.0)
+    whole = {
+        k: np.asarray(v) for k, v in process_tile(plan, jax.numpy.asarray(frames), jax.numpy.asarray(dark)).items()
+    }
+    parts = TileDispatcher(plan, sub_px=24).dispatch(frames, dark).gather()  # 24 + 24 + 16 (padded to 24)
     assert parts.keys() == whole.keys()
-    assert parts["fit_status"][5] == DEAD and parts["valid"].sum() == frames.shape[-1] - 1
+    assert parts["fit_status"][5] == Status.DEAD and parts["valid"].sum() == frames.shape[-1] - 1
     np.testing.assert_array_equal(parts["fit_status"], whole["fit_status"])
     # float32 FFTs of different batch sizes round differently (~1e-7 relative), nothing more
     np.testing.assert_allclose(parts["depth_m"], whole["depth_m"], rtol=0, atol=1e-3 * np.median(whole["sigma_m"]))
@@ -313,10 +350,16 @@ def test_sub_tiles_give_the_same_pixels_as_one_tile(paper_instrument, planar_mon
 
 def test_options_out_of_range_are_refused():
     """A NaN SNR threshold would pass every pixel (NaN compares false): refused, like the rest."""
-    for bad, match in (({"snr_threshold_db": float("nan")}, "snr_threshold_db"), ({"max_fit_chi2": 0.0}, "max_fit_chi2"),
-                       ({"max_fit_chi2": float("nan")}, "max_fit_chi2"), ({"method": "fft"}, "unknown method"),
-                       ({"window_bins": 2}, "window_bins"), ({"max_steps": 0}, "max_steps"),
-                       ({"min_depth_m": -1.0}, "min_depth_m"), ({"tile_rows": 0}, "tile_rows")):
+    for bad, match in (
+        ({"snr_threshold_db": float("nan")}, "snr_threshold_db"),
+        ({"max_fit_chi2": 0.0}, "max_fit_chi2"),
+        ({"max_fit_chi2": float("nan")}, "max_fit_chi2"),
+        ({"method": "fft"}, "unknown method"),
+        ({"window_bins": 2}, "window_bins"),
+        ({"max_steps": 0}, "max_steps"),
+        ({"min_depth_m": -1.0}, "min_depth_m"),
+        ({"tile_rows": 0}, "tile_rows"),
+    ):
         with pytest.raises(ValueError, match=match):
             ReconstructOptions(**bad)
 
@@ -327,15 +370,20 @@ def test_reconstruct_array_refuses_inputs_that_do_not_fit():
     ran silently with the wrong N."""
     frames = np.full((4, 3, 2, 2), 100, np.uint16)
     with pytest.raises(ValueError, match="3 frames are too few"):
-        reconstruct_array(frames, 1e8 + 2e6 * np.arange(3), OPTS["ml"])
+        reconstruct_array(frames, cf.Instrument(sweep=cf.FrequencySweep(1e8 + 2e6 * np.arange(3))), OPTS["ml"])
     frames, f = np.full((4, 8, 2, 2), 100, np.uint16), 1e8 + 2e6 * np.arange(8)
-    for kwargs, match in (({"frequencies_hz": f[:5]}, r"frequencies_hz must have shape \(8,\)"),
-                          ({"frequencies_hz": f[::-1]}, "strictly increasing"),
-                          ({"frequencies_hz": np.where(np.arange(8) == 2, np.nan, f)}, "NaN"),
-                          ({"frequencies_hz": f, "dark": np.zeros((4, 3, 3))}, r"dark must have shape \(4, 2, 2\)"),
-                          ({"frequencies_hz": f, "carrier_phase_rad": np.zeros(3)}, "carrier_phase_rad")):
+    inst = cf.Instrument(sweep=cf.FrequencySweep(f))
+    with pytest.raises(ValueError, match=r"frequencies_hz must have shape \(8,\)"):
+        reconstruct_array(frames, cf.Instrument(sweep=cf.FrequencySweep(f[:5])), OPTS["ml"])
+    for bad, match in ((f[::-1], "strictly increasing"), (np.where(np.arange(8) == 2, np.nan, f), "NaN")):
         with pytest.raises(ValueError, match=match):
-            reconstruct_array(frames, options=OPTS["ml"], **kwargs)
+            cf.FrequencySweep(bad)
+    for kwargs, match in (
+        ({"maps": cf.PixelMaps(offset_dn=np.zeros((4, 3, 3)))}, r"offset_dn has shape \(4, 3, 3\)"),
+        ({"carrier_phase_rad": np.zeros(3)}, "carrier_phase_rad"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            reconstruct_array(frames, inst, OPTS["ml"], **kwargs)
 
 
 def test_sub_tile_size_follows_the_platform():
@@ -357,7 +405,7 @@ def test_polish_converges_in_few_newton_steps_and_never_reports_a_maximum_as_con
     residuals are noisy (Gauss–Newton is linear there); a start past the ripple's inflection
     climbs to the maximum, which must be flagged, not reported as a fit."""
 
-    from cohflash_jax.estimate.ml import descended, polish_depth
+    from cohflash_jax.estimate.polish import descended, polish_depth
 
     rng = np.random.default_rng(1)
     x_mm = np.linspace(-30.0, 30.0, 34)
@@ -385,7 +433,8 @@ def test_straggler_pass_gives_each_pixel_its_uninterrupted_polish():
     it — same steps, same convergence, same depth — whatever its batch: 96 low-SNR pixels
     (up to three straggler groups, and empty slots), synthetic windows of the phase-locked model."""
 
-    from cohflash_jax.estimate.ml import STRAGGLER_GROUP, UniformModel, grid_for, refine_ml_uniform, window_tables
+    from cohflash_jax.estimate.window_ml import STRAGGLER_GROUP, grid_for, refine_ml_uniform
+    from cohflash_jax.estimate.window_model import UniformModel, window_tables
     from cohflash_jax.modulator import MZM
 
     n, start_hz, step_hz, width = 3000, 0.1e9, 5.9e9 / 3000, 17
@@ -401,11 +450,22 @@ def test_straggler_pass_gives_each_pixel_its_uninterrupted_polish():
     noise_var = 1.0
     snr_db = rng.uniform(-10.0, 12.0, pixels)  # SNR n(A·w₁)²/σ² from noise-like to just below the threshold
     amplitude = np.sqrt(10 ** (snr_db / 10) * noise_var / n) / float(model.weights[1])
-    windows = amplitude[:, None] * tones + np.sqrt(noise_var / 2) * (rng.normal(size=tones.shape) + 1j * rng.normal(size=tones.shape))
+    windows = amplitude[:, None] * tones + np.sqrt(noise_var / 2) * (
+        rng.normal(size=tones.shape) + 1j * rng.normal(size=tones.shape)
+    )
     half, points, candidates = grid_for(bin_m, C / (2 * (start_hz + 0.5 * step_hz * n)))
-    fit = lambda first: refine_ml_uniform(model, windows, jnp.asarray(k0), jnp.asarray(coarse), jnp.full(pixels, noise_var),
-                                          grid_half_width_m=half, grid_points=points, candidates=candidates,
-                                          max_steps=16, first_pass_steps=first)
+    fit = lambda first: refine_ml_uniform(
+        model,
+        windows,
+        jnp.asarray(k0),
+        jnp.asarray(coarse),
+        jnp.full(pixels, noise_var),
+        grid_half_width_m=half,
+        grid_points=points,
+        candidates=candidates,
+        max_steps=16,
+        first_pass_steps=first,
+    )
     whole, resumed = fit(16), fit(1)
     steps = np.asarray(whole.num_steps)
     assert steps.max() >= 4 and (steps > 1).sum() > 2 * STRAGGLER_GROUP  # with first_pass_steps = 1: three groups
@@ -421,9 +481,8 @@ def test_system_delay_moves_the_unambiguous_window_and_depths_stay_exact(system_
     [−0.3, 0.7)·ambiguity); τ_sys = 2.8 P/2 in the fourth, where the folded tone runs
     backwards (window [0.2, 1.2)·ambiguity). Noiseless, with sidebands: ML exact to 1 µm
     across the window, and the window reported."""
-    from cohflash_jax.reconstruct import build_config, delay_window
-    from cohflash_jax.hybrid import Hybrid
-    from cohflash_jax.modulator import MZM
+    from cohflash_jax.geometry import delay_window
+    from cohflash_jax.reconstruct import build_plan
 
     sweep = paper_instrument.sweep
     period_s = 1 / sweep.step_hz
@@ -436,26 +495,28 @@ def test_system_delay_moves_the_unambiguous_window_and_depths_stay_exact(system_
     depths = np.random.default_rng(5).uniform(lo + 0.2, hi - 0.2, 64)
     inst = cf.Instrument.paper(N_FRAMES, system_delay_s=delay)
     frames = cf.simulate(depth_scene(depths, effects=("sidebands",)), inst, 8, 8, jax.random.key(0))
-    out = _reconstruct(frames, inst, system_delay_s=delay)
+    out = _reconstruct(frames, inst)
     err = out["depth_m"].ravel() - depths
     assert np.all(out["valid"]) and np.max(np.abs(err)) < 1e-6
-    cfg = build_config(sweep.frequencies_hz, Hybrid(), MZM(), delay, None, OPTS["ml"])
-    assert cfg.depth_window_m == (start, end) and cfg.fold_index == fold
+    geometry = build_plan(inst, OPTS["ml"]).geometry
+    assert geometry.depth_window_m == (start, end) and geometry.fold_index == fold
 
 
 def _two_kernel_tone(model, depth, tables):
     """Σ_n w_n (e^{iθ_n} D(x_n) + e^{−iθ_n} D(−x_n)) over the window: the tone column written
     out with `dirichlet_window`, two kernels an order (the reference for `tone_column`)."""
 
-    from cohflash_jax.estimate import ml
+    from cohflash_jax.estimate import window_model as ml
 
     tau = model.delay(depth)
     total = 0
     for order in range(1, model.weights.shape[0]):
         x, cycles = order * model.step_hz * tau, order * model.start_hz * tau
         rot = jnp.exp(2j * jnp.pi * (cycles - jnp.floor(cycles)))
-        total = total + model.weights[order] * (rot * ml.dirichlet_window(x, tables, model.num_frames)
-                                                + jnp.conj(rot) * ml.dirichlet_window(-x, tables, model.num_frames))
+        total = total + model.weights[order] * (
+            rot * ml.dirichlet_window(x, tables, model.num_frames)
+            + jnp.conj(rot) * ml.dirichlet_window(-x, tables, model.num_frames)
+        )
     return total
 
 
@@ -464,7 +525,7 @@ def test_tone_column_equals_the_two_dirichlet_kernels_of_each_order():
     it must equal the two kernels evaluated apart (`dirichlet_window`), on and off a bin, with
     finite first and second derivatives on a bin (Newton differentiates it twice)."""
 
-    from cohflash_jax.estimate import ml
+    from cohflash_jax.estimate import window_model as ml
 
     n, width = N_FRAMES, 17
     model = ml.UniformModel(0.1e9, 1.97e6, jnp.asarray([0.29, 0.097, 0.0066, 1.9e-4]), 0.0, num_frames=n)
@@ -476,9 +537,12 @@ def test_tone_column_equals_the_two_dirichlet_kernels_of_each_order():
         tables = ml.window_tables(jnp.asarray(min(max(peak - width // 2, 0), n // 2 + 1 - width)), width, n)
         d = jnp.asarray(depth)
         expected = _two_kernel_tone(model, d, tables)
-        np.testing.assert_allclose(model.tone_column(d, tables), expected, rtol=0, atol=1e-11 * np.max(np.abs(expected)))
-        second = jax.jvp(lambda z: jax.jvp(lambda y: model.tone_column(y, tables), (z,), (jnp.ones(()),))[1],
-                         (d,), (jnp.ones(()),))[1]
+        np.testing.assert_allclose(
+            model.tone_column(d, tables), expected, rtol=0, atol=1e-11 * np.max(np.abs(expected))
+        )
+        second = jax.jvp(
+            lambda z: jax.jvp(lambda y: model.tone_column(y, tables), (z,), (jnp.ones(()),))[1], (d,), (jnp.ones(()),)
+        )[1]
         assert np.all(np.isfinite(second))
 
 
@@ -487,7 +551,8 @@ def test_dirichlet_kernel_phasor_shift_and_grid_orders_against_direct_evaluation
     `rotation(δ)` equals the phasors at depth + δ (the polish and the grid move by rotation);
     the basin grid keeps the orders of at least 1 % of the dominant weight."""
 
-    from cohflash_jax.estimate import ml
+    from cohflash_jax.estimate import window_ml
+    from cohflash_jax.estimate import window_model as ml
 
     n, width = 3000, 17
     m_idx = np.arange(n)
@@ -499,10 +564,12 @@ def test_dirichlet_kernel_phasor_shift_and_grid_orders_against_direct_evaluation
     model = ml.UniformModel(0.1e9, 1.97e6, jnp.asarray([0.29, 0.097, 0.0066, 1.9e-4]), 3e-9, num_frames=n)
     for depth, delta in ((30.5, 4.7e-3), (12.68, -0.0251), (0.0, 1e-6)):
         moved = ml.shift_phasors(model.phasors(jnp.asarray(depth)), model.rotation(jnp.asarray(delta)))
-        np.testing.assert_allclose(np.asarray(moved), np.asarray(model.phasors(jnp.asarray(depth + delta))),
-                                   rtol=0, atol=1e-9)
-    assert ml.grid_orders(model.weights) == 2
-    assert ml.grid_orders([0.3, 0.1, 0.0, 0.002]) == 3 and ml.grid_orders([0.3, 0.1, 0.0005, 0.0009]) == 1
+        np.testing.assert_allclose(
+            np.asarray(moved), np.asarray(model.phasors(jnp.asarray(depth + delta))), rtol=0, atol=1e-9
+        )
+    assert window_ml.grid_orders(model.weights) == 2
+    assert window_ml.grid_orders([0.3, 0.1, 0.0, 0.002]) == 3
+    assert window_ml.grid_orders([0.3, 0.1, 0.0005, 0.0009]) == 1
 
 
 def test_a_fit_whose_tone_cancels_the_offset_is_flagged_not_valid():
@@ -513,13 +580,11 @@ def test_a_fit_whose_tone_cancels_the_offset_is_flagged_not_valid():
     flagged fit_failed."""
     from pathlib import Path
 
-    from cohflash_jax.reconstruct import FIT_FAILED
-
     frames = np.load(Path(__file__).parent / "data" / "degenerate_pixel_35_frames.npy")[:, :, None, None]
     n = frames.shape[1]
-    sweep = cf.FrequencySweep.uniform(6e9 / n, 6e9 / n, n)
-    out = reconstruct_array(frames, sweep.frequencies_hz, OPTS["ml"])
-    assert out["fit_status"][0, 0] == FIT_FAILED and not out["valid"][0, 0]
+    inst = cf.Instrument(sweep=cf.FrequencySweep.uniform(6e9 / n, 6e9 / n, n))
+    out = reconstruct_array(frames, inst, OPTS["ml"])
+    assert out["fit_status"][0, 0] == Status.FIT_FAILED and not out["valid"][0, 0]
     assert np.isfinite(out["depth_m"][0, 0])
 
 
@@ -536,41 +601,42 @@ def test_fits_that_trade_depth_against_the_offset_near_dc_are_flagged(path, monk
     are exact to 1 µm."""
     from pathlib import Path
 
-    from cohflash_experiments.precision_table import ten_hz_mode
-    from cohflash_jax import reconstruct
-    from cohflash_jax.estimate import ml
-    from cohflash_jax.reconstruct import FIT_FAILED
+    from cohflash_jax.estimate import table
+    from cohflash_jax.estimate import window_model as ml
+    from cohflash_jax.fisher import MAX_VARIANCE_INFLATION
 
     if path == "window":
-        monkeypatch.setattr(reconstruct, "TABLE_MAX_FRAMES", 0)
+        monkeypatch.setattr(table, "TABLE_MAX_FRAMES", 0)
     frames = np.load(Path(__file__).parent / "data" / "near_dc_fits_35_frames.npy")[:, :, None, :]
-    inst = ten_hz_mode()
+    inst = cf.Instrument.ten_hz_mode()
     sweep, n = inst.sweep, frames.shape[1]
-    out = reconstruct_array(frames, sweep.frequencies_hz, OPTS["ml"])
-    assert np.all(out["fit_status"] == FIT_FAILED) and not out["valid"].any()
+    out = reconstruct_array(frames, inst, OPTS["ml"])
+    assert np.all(out["fit_status"] == Status.FIT_FAILED) and not out["valid"].any()
     assert np.all(out["depth_m"] < 0.01) and np.all(out["coarse_depth_m"] > 0.025)
     if path == "window":
         assert np.all(10 * np.log10(out["snr"]) > 16)
 
     depths = np.array([0.004, 0.009, 0.02, 0.05, 0.3])
-    clean = reconstruct_array(cf.simulate(depth_scene(depths, effects=("sidebands",)), inst, 8, 8, jax.random.key(0)),
-                              sweep.frequencies_hz, OPTS["ml"])
+    clean = reconstruct_array(
+        cf.simulate(depth_scene(depths, effects=("sidebands",)), inst, 8, 8, jax.random.key(0)), inst, OPTS["ml"]
+    )
     status, valid, found = (clean[k].ravel()[:5] for k in ("fit_status", "valid", "depth_m"))
     weights = cf.MZM().weights(float(np.mean(sweep.frequencies_hz)))
-    model = ml.UniformModel(float(sweep.frequencies_hz[0]), float(sweep.step_hz), jnp.asarray(weights), 0.0,
-                            num_frames=n)
+    model = ml.UniformModel(
+        float(sweep.frequencies_hz[0]), float(sweep.step_hz), jnp.asarray(weights), 0.0, num_frames=n
+    )
     tables = ml.window_tables(jnp.asarray(0), 17, n)
 
     def window(params):  # c·DC + A·Σ_n 2w_n cos(2π n f_m τ) over bins 0..16, two kernels an order
         depth, offset, amp = params
         col = offset * ml.dirichlet_window(jnp.zeros(()), tables, n) + amp * _two_kernel_tone(model, depth, tables)
-        return jnp.concatenate([jnp.real(col), jnp.imag(col)]) * jnp.tile(ml._bin_weights(tables, n), 2)
+        return jnp.concatenate([jnp.real(col), jnp.imag(col)]) * jnp.tile(ml.bin_weights(tables, n), 2)
 
     for depth, code in zip(depths, status):
         jac = jax.jacfwd(window)(jnp.asarray([depth, 1.0, 1.0]))
         fisher = np.asarray(jac.T @ jac)
         inflation = fisher[0, 0] * np.linalg.inv(fisher)[0, 0]
-        assert (inflation > ml.MAX_VARIANCE_INFLATION) == (code == FIT_FAILED), (depth, inflation, code)
+        assert (inflation > MAX_VARIANCE_INFLATION) == (code == Status.FIT_FAILED), (depth, inflation, code)
         assert (inflation > 30) if depth < 0.01 else (inflation < 1.2)
     assert np.all(valid[2:]) and np.max(np.abs(found[2:] - depths[2:])) < 1e-6
 
@@ -579,21 +645,21 @@ def test_snr_threshold_is_raised_for_the_noise_estimate_from_few_frames():
     """The SNR's σ² comes from the pixel's own N frames (relative error √(2/(N−1))): the
     threshold applied is raised by 1/(1 − √(2/(N−1))) and recorded; a 35-frame pixel between
     14 dB and the raised threshold is low_snr."""
-    from cohflash_experiments.precision_table import ten_hz_mode
-    from cohflash_jax.reconstruct import DEFAULT_SNR_THRESHOLD_DB, LOW_SNR, snr_threshold_margin
+    from cohflash_jax.reconstruct import DEFAULT_SNR_THRESHOLD_DB, snr_threshold_margin
 
     assert 10 * np.log10(snr_threshold_margin(3000)) == pytest.approx(0.114, abs=1e-3)
     assert 10 * np.log10(snr_threshold_margin(35)) == pytest.approx(1.206, abs=1e-3)
-    inst = ten_hz_mode()
-    sweep, n = inst.sweep, inst.sweep.frequencies_hz.size
-    frames = cf.simulate(cf.planar(reflectance=0.5, effects=("shot_noise", "read_noise")), inst, 16, 16,
-                         jax.random.key(3))
-    out = reconstruct_array(frames, sweep.frequencies_hz, OPTS["ml"])
+    inst = cf.Instrument.ten_hz_mode()
+    n = inst.sweep.num_steps
+    frames = cf.simulate(
+        cf.planar(reflectance=0.5, effects=("shot_noise", "read_noise")), inst, 16, 16, jax.random.key(3)
+    )
+    out = reconstruct_array(frames, inst, OPTS["ml"])
     snr_db = 10 * np.log10(out["snr"])
     applied = DEFAULT_SNR_THRESHOLD_DB + 10 * np.log10(snr_threshold_margin(n))
     assert np.all(snr_db[out["valid"]] >= applied)
     between = (snr_db >= DEFAULT_SNR_THRESHOLD_DB) & (snr_db < applied)
-    assert between.sum() >= 5 and np.all(out["fit_status"][between] == LOW_SNR)
+    assert between.sum() >= 5 and np.all(out["fit_status"][between] == Status.LOW_SNR)
 
 
 def test_compilation_cache_folder_is_created_set_and_can_be_turned_off(tmp_path, monkeypatch):
@@ -619,17 +685,16 @@ def test_slow_drift_without_an_echo_is_not_reported_as_a_target():
     rises towards DC, the coarse peak sits on the first searched bin, and before the DC-edge
     check 16 of 64 pixels came out valid at one bin (≈ 25 mm) with χ² < 5. None may."""
     n = 35
-    sweep = cf.FrequencySweep.uniform(6e9 / n, 6e9 / n, n)
+    inst = cf.Instrument(sweep=cf.FrequencySweep.uniform(6e9 / n, 6e9 / n, n))
+    sweep = inst.sweep
     rng = np.random.default_rng(0)
     m = np.arange(n)[:, None, None]
     strength = rng.uniform(5, 200, (8, 8))
     frames = 400 + rng.normal(0, 2.0, (4, n, 8, 8))
     frames[0] += strength * (4 * ((m - n / 2) / n) ** 2 + 0.3 * m / n)
-    out = reconstruct_array(frames.astype(np.float32), sweep.frequencies_hz, OPTS["ml"])
+    out = reconstruct_array(frames.astype(np.float32), inst, OPTS["ml"])
     assert not out["valid"].any()
-    from cohflash_jax.reconstruct import DC_EDGE
-
-    assert np.sum(out["fit_status"] == DC_EDGE) >= 16  # the ones that passed every other check
+    assert np.sum(out["fit_status"] == Status.DC_EDGE) >= 16  # the ones that passed every other check
     assert np.all((out["depth_m"] >= 0) & (out["depth_m"] < sweep.ambiguity_m))
 
 
@@ -650,7 +715,7 @@ def test_async_filter_jit_keeps_filter_jit_semantics():
 
     def f(settings, x, *, negate: bool):
         traces.append(1)
-        y = settings.scale * x ** settings.power + settings.offset
+        y = settings.scale * x**settings.power + settings.offset
         return -y if negate else y
 
     g = async_filter_jit(f)

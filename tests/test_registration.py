@@ -10,8 +10,13 @@ import pytest
 
 import cohflash_jax as cf
 from cohflash_calibration.board import Board
-from cohflash_calibration.registration import (RegistrationError, from_pixel_transforms, load_registration, register,
-                                               write_registration)
+from cohflash_calibration.registration import (
+    RegistrationError,
+    from_pixel_transforms,
+    load_registration,
+    register,
+    write_registration,
+)
 from cohflash_calibration.synthetic import board_poses, default_rig, write_rig_views
 from cohflash_jax.cli import main
 
@@ -31,8 +36,19 @@ def views(tmp_path_factory, rig):
     rng = np.random.default_rng(0)
     poses = board_poses(30, rng, BOARD)
     poses.append((poses[0][0], poses[0][1] + np.array([330.0, 0.0, 0.0])))  # board off the right edge
-    dirs = write_rig_views(root, rig, BOARD, poses, rng=rng, bit_depth=16, black=0.02, white=0.07,
-                           background=0.04, noise=0.0005, offset=0.01)
+    dirs = write_rig_views(
+        root,
+        rig,
+        BOARD,
+        poses,
+        rng=rng,
+        bit_depth=16,
+        black=0.02,
+        white=0.07,
+        background=0.04,
+        noise=0.0005,
+        offset=0.01,
+    )
     cv2.imwrite(str(dirs[1] / "view_000.png"), np.full((512, 640), 2000, np.uint16))  # no board at all
     return dirs
 
@@ -70,7 +86,9 @@ def test_maps_match_the_true_cameras_and_xor_drops(rig, registration):
     true = [CameraCalibration(c.camera_matrix, c.dist_coeffs, 0, {}, np.zeros(0), [], {}) for c in rig]
     for k in (2, 3, 4):
         mx, my = registration.maps(k)
-        tx, ty = pixel_maps(true[0], true[k - 1], rig[k - 1].R, rig[k - 1].T, rig[0].image_size, registration.distance_mm)
+        tx, ty = pixel_maps(
+            true[0], true[k - 1], rig[k - 1].R, rig[k - 1].T, rig[0].image_size, registration.distance_mm
+        )
         inner = (slice(40, -40), slice(40, -40))
         assert np.max(np.hypot(mx - tx, my - ty)[inner]) < 0.5
     for before, after in zip(registration.xor_before, registration.xor_after):
@@ -79,8 +97,23 @@ def test_maps_match_the_true_cameras_and_xor_drops(rig, registration):
 
 def test_cli_writes_registration_and_report_that_round_trip(tmp_path, views, capsys):
     out, report = tmp_path / "registration.json", tmp_path / "report.png"
-    rc = main(["calibrate", "registration", "--images", *map(str, views), "--board", "9x6", "--square-mm", "25",
-               "--out", str(out), "--report", str(report), "--quiet"])
+    rc = main(
+        [
+            "calibrate",
+            "registration",
+            "--images",
+            *map(str, views),
+            "--board",
+            "9x6",
+            "--square-mm",
+            "25",
+            "--out",
+            str(out),
+            "--report",
+            str(report),
+            "--quiet",
+        ]
+    )
     assert rc == 0
     text = capsys.readouterr().out
     assert "XOR misalignment" in text and "chessboard not found" not in text and "view_000" in text
@@ -94,8 +127,10 @@ def test_cli_writes_registration_and_report_that_round_trip(tmp_path, views, cap
         load_registration(report)
     # tampered files: a NaN intrinsic, a pose missing (before: accepted, and an IndexError)
     bad = tmp_path / "bad.json"
-    for change, match in ((lambda d: d["cameras"][1]["camera_matrix"][0].__setitem__(0, float("nan")), "NaN"),
-                          (lambda d: d["relative_poses"].pop(), "3 relative poses, got 4 and 2")):
+    for change, match in (
+        (lambda d: d["cameras"][1]["camera_matrix"][0].__setitem__(0, float("nan")), "NaN"),
+        (lambda d: d["relative_poses"].pop(), "3 relative poses, got 4 and 2"),
+    ):
         tampered = json.loads(out.read_text())
         change(tampered)
         bad.write_text(json.dumps(tampered))
@@ -124,7 +159,7 @@ def test_bad_inputs_name_the_problem(tmp_path, views):
     with pytest.raises(RegistrationError, match=f"{odd.name}.*bit depth"):
         register(list(views[:3]) + [depth], BOARD, progress=False)
     few = [tmp_path / f"few{k}" for k in range(4)]
-    for k, d in enumerate(few):
+    for d in few:
         d.mkdir()
         for i in range(3):
             cv2.imwrite(str(d / f"v{i}.png"), np.full((64, 64), 128, np.uint8))
@@ -148,13 +183,9 @@ def test_registration_reduces_depth_errors_at_edges(tmp_path):
     from cohflash_jax.simulate import simulate_to_file
 
     transforms = ((4.0, -3.0, 0.8), (-3.5, 2.5, -0.6), (2.5, 4.0, 0.5))
-    settings = cf.EffectSettings(misregistration_px_px_deg=transforms)
     scene = cf.staircase(effects=("sidebands", "shot_noise", "read_noise", "quantization", "misregistration"))
-    import dataclasses
-
-    scene = dataclasses.replace(scene, settings=settings)
     h, w = 48, 64
-    inst = cf.Instrument.paper(3000)
+    inst = cf.Instrument.paper(3000, errors=cf.InstrumentErrors(misregistration_px_px_deg=transforms))
     cap = tmp_path / "mis.h5"
     simulate_to_file(cap, scene, inst, h, w, seed=4, progress=False)
     focal = (w / 2) / np.tan(np.deg2rad(inst.field_of_view_deg[0]) / 2)

@@ -9,9 +9,7 @@ import pytest
 
 import cohflash_jax as cf
 from cohflash_jax.cli import main
-from cohflash_jax.hybrid import Hybrid
-from cohflash_jax.modulator import MZM
-from cohflash_jax.reconstruct import ReconstructOptions, build_config
+from cohflash_jax.reconstruct import ReconstructOptions, build_plan
 from cohflash_jax.uncertainty import pixel_data, sample_pixel
 
 from .conftest import N_FRAMES
@@ -20,15 +18,25 @@ NOISE = ("shot_noise", "read_noise", "dark_current", "quantization")
 
 
 def _posteriors(inst, frames, max_steps=20000, seed=0):
-    cfg = build_config(inst.sweep.frequencies_hz, Hybrid(), MZM(), 0.0, 16383.0, ReconstructOptions(method="ml"))
+    options = ReconstructOptions(method="ml")
+    plan = build_plan(inst, options, 16383.0)
     n, h, w = frames.shape[1:]
-    data = pixel_data(cfg, jax.numpy.asarray(frames.reshape(4, n, h * w)))
+    data = pixel_data(plan, jax.numpy.asarray(frames.reshape(4, n, h * w)), options.window_bins)
     rng = np.random.default_rng(seed)
     out = []
     for p in range(h * w):
         d = jax.tree_util.tree_map(lambda x: x[p], data)
-        out.append(sample_pixel(cfg.model, d, ambiguity_m=cfg.ambiguity_m, bin_depth_m=cfg.bin_depth_m,
-                                ripple_m=inst.sweep.ripple_period_m, rng=rng, max_steps=max_steps))
+        out.append(
+            sample_pixel(
+                plan.model,
+                d,
+                ambiguity_m=plan.geometry.ambiguity_m,
+                bin_depth_m=plan.geometry.bin_depth_m,
+                ripple_m=plan.geometry.ripple_m,
+                rng=rng,
+                max_steps=max_steps,
+            )
+        )
     return out
 
 
@@ -76,11 +84,32 @@ def test_zero_echo_ends_with_a_clear_result(paper_instrument, tmp_path, capsys):
     from cohflash_jax.simulate import simulate_to_file
 
     cap = tmp_path / "dark.h5"
-    simulate_to_file(cap, cf.from_arrays(np.full((2, 2), 30.5), np.zeros((2, 2)), effects=NOISE), paper_instrument,
-                     2, 2, progress=False)
+    simulate_to_file(
+        cap,
+        cf.from_arrays(np.full((2, 2), 30.5), np.zeros((2, 2)), effects=NOISE),
+        paper_instrument,
+        2,
+        2,
+        progress=False,
+    )
     out = tmp_path / "posterior.h5"
-    rc = main(["uncertainty", str(cap), "--pixel", "0,0", "--pixel", "1,1", "--out", str(out), "--plot",
-               str(tmp_path / "p.png"), "--max-steps", "2000", "--quiet"])
+    rc = main(
+        [
+            "uncertainty",
+            str(cap),
+            "--pixel",
+            "0,0",
+            "--pixel",
+            "1,1",
+            "--out",
+            str(out),
+            "--plot",
+            str(tmp_path / "p.png"),
+            "--max-steps",
+            "2000",
+            "--quiet",
+        ]
+    )
     assert rc == 0
     assert "ML fit flagged" in capsys.readouterr().out
     with h5py.File(out) as f:
@@ -99,11 +128,29 @@ def test_zero_echo_ends_with_a_clear_result(paper_instrument, tmp_path, capsys):
     # a dead pixel (constant frames) gets no posterior: it is skipped and named, the rest sampled
     with h5py.File(cap, "r+") as f:
         f["frames"][:, :, 1, 0] = 200
-    rc = main(["uncertainty", str(cap), "--pixel", "0,0", "--pixel", "1,0", "--out", str(out), "--max-steps", "2000",
-               "--quiet"])
+    rc = main(
+        [
+            "uncertainty",
+            str(cap),
+            "--pixel",
+            "0,0",
+            "--pixel",
+            "1,0",
+            "--out",
+            str(out),
+            "--max-steps",
+            "2000",
+            "--quiet",
+        ]
+    )
     assert rc == 0 and "skipped 1 pixel(s) with unusable data (no posterior): (1,0) dead" in capsys.readouterr().out
     with h5py.File(out) as f:
         assert list(f["row"][()]) == [0] and json.loads(f.attrs["skipped_pixels"]) == [[1, 0, "dead (constant)"]]
-    # nothing usable: a clear error (the pixel twice keeps the compiled two-pixel shape)
-    assert main(["uncertainty", str(cap), "--pixel", "1,0", "--pixel", "1,0", "--out", str(out)]) == 2
+    # nothing usable: a clear error (two dead pixels keep the compiled two-pixel shape)
+    with h5py.File(cap, "r+") as f:
+        f["frames"][:, :, 1, 1] = 300
+    assert main(["uncertainty", str(cap), "--pixel", "1,0", "--pixel", "1,1", "--out", str(out)]) == 2
     assert "no pixel with usable data: (1, 0) dead" in capsys.readouterr().err
+    # a pixel named twice is refused before any sampling, naming it
+    assert main(["uncertainty", str(cap), "--pixel", "0,0", "--pixel", "0,0", "--out", str(out)]) == 2
+    assert "named more than once: (0, 0)" in capsys.readouterr().err

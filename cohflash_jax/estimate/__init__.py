@@ -1,10 +1,31 @@
-"""Depth inversion: I/Q and carrier alignment, coarse DFT, ML refinement, CRLB."""
+"""Depth estimation: I/Q and carrier alignment (`iq`), the coarse stage shared by every
+estimator (`coarse`), and the estimators behind one interface (`base`), chosen by name
+(`registry`): DFT peak and interpolated peak (`peak`), window ML (`window_ml`), table ML
+(`table`), time-domain ML (`time_domain`)."""
 
-from .coarse import coarse_peak, hann_power, interpolate_peak
-from .iq import align_carrier_static, derotate, iq_from_frames, track_carrier_drift
-from .ml import dirichlet_window, refine_ml_uniform
-from .table import ToneTable, build_tone_table, refine_ml_table
+from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult
+from .coarse import AbstractCoarseStage, CoarseSpectrum, DelayPeriodogram, UniformSpectrum
+from .peak import DFTPeak, InterpolatedPeak
+from .registry import METHODS, Method, choose_estimator
+from .table import TableML
+from .time_domain import TimeDomainML
+from .window_ml import WindowML
 
-__all__ = ["iq_from_frames", "align_carrier_static", "track_carrier_drift", "derotate", "coarse_peak", "hann_power",
-           "interpolate_peak", "dirichlet_window", "refine_ml_uniform", "ToneTable", "build_tone_table",
-           "refine_ml_table"]
+__all__ = [
+    "AbstractDepthEstimator",
+    "DepthEstimate",
+    "EstimatorSetup",
+    "FitResult",
+    "AbstractCoarseStage",
+    "CoarseSpectrum",
+    "DelayPeriodogram",
+    "UniformSpectrum",
+    "DFTPeak",
+    "InterpolatedPeak",
+    "METHODS",
+    "Method",
+    "choose_estimator",
+    "TableML",
+    "TimeDomainML",
+    "WindowML",
+]

@@ -1,16 +1,30 @@
-"""Coarse depth: Hann-windowed DFT over the frame index, peak pick and interpolation.
+"""The coarse stage, shared by every estimator: where each pixel's tone is, to a grid point.
 
-float32: a 3000-point FFT of float32 data has relative error ~1e-6 of the peak, far
-below noise at any SNR where a peak can be found; the peak's position is then refined
-in float64 by the ML stage.
+Uniform sweeps (`UniformSpectrum`): the Hann-windowed DFT over the frame index, its peak and a
+Gaussian interpolation. Non-uniform schedules (`DelayPeriodogram`): there is no "frequency
+over the frame index" when f_m is not f_0 + mΔf, so the stage is a periodogram over delay,
+|Σ_m (r[m] − r̄)·e^{−i2π f_m τ}|², on a depth grid (one matrix product per tile). Its
+magnitude is smooth on the envelope scale c/(2B) (the tone's phase ripple cancels in |·|), so
+the grid needs ~4 points per c/(2B).
+
+float32: a 3000-point FFT of float32 data has relative error ~1e-6 of the peak, far below
+noise at any SNR where a peak can be found; the position is then refined in float64 by the
+ML estimators.
 """
 
 from __future__ import annotations
 
+import abc
 import math
 
+import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, Complex, Float, Int
+import numpy as np
+from jaxtyping import Array, Bool, Complex, Float, Int
+
+from ..constants import SPEED_OF_LIGHT_M_PER_S as C
+from ..fisher import crlb_frequency_only_m, frequency_only_sigma_m
+from ..geometry import SweepGeometry
 
 
 def unitary_rfft(seq: Float[Array, "N P"]) -> Complex[Array, "P K"]:
@@ -32,7 +46,7 @@ def hann_power(spec: Complex[Array, "P K"], n: int) -> Float[Array, "P K"]:
     k = spec.shape[-1]
     x1 = spec[..., 1:2]
     interior = 0.5 * spec[..., 1:-1] - 0.25 * (spec[..., :-2].at[..., 0].set(0) + spec[..., 2:])
-    mirror = spec[..., k - 2:k - 1] if n % 2 == 0 else spec[..., k - 1:k]
+    mirror = spec[..., k - 2 : k - 1] if n % 2 == 0 else spec[..., k - 1 : k]
     last = 0.5 * spec[..., -1:] - 0.25 * (spec[..., -2:-1] + jnp.conj(mirror))
     first = -0.25 * (x1 + jnp.conj(x1))  # mean removed: X[0] = 0
     sq = lambda z: jnp.real(z) ** 2 + jnp.imag(z) ** 2
@@ -42,8 +56,7 @@ def hann_power(spec: Complex[Array, "P K"], n: int) -> Float[Array, "P K"]:
 def first_argmax(x: Float[Array, "P K"]) -> Int[Array, " P"]:
     """`jnp.argmax` along the last axis (first index of the maximum) as two vectorised
     reductions, a max and a min over indices: XLA's CPU argmax is a variadic reduce that does
-    not vectorise (measured on a Hann spectrum of 512 px × 1501 bins, fused with it: 2.9 ms
-    against 0.7 ms). A NaN row gives index 0."""
+    not vectorise (docs/performance.md). A NaN row gives index 0."""
     k = x.shape[-1]
     top = jnp.max(x, axis=-1, keepdims=True)
     first = jnp.min(jnp.where(x == top, jnp.arange(k, dtype=jnp.int32), k), axis=-1)
@@ -58,11 +71,170 @@ def coarse_peak(power: Float[Array, "P K"], min_bin: int = 1) -> Int[Array, " P"
 def interpolate_peak(power: Float[Array, "P K"], peak: Int[Array, " P"]) -> Float[Array, " P"]:
     """Sub-bin peak position by a parabola through the log power of the peak and its
     neighbours (Gaussian interpolation; bias < 2 % of a bin for a Hann window)."""
-    k = power.shape[-1]
     tiny = jnp.finfo(power.dtype).tiny
-    take = lambda idx: jnp.log(jnp.maximum(jnp.take_along_axis(power, jnp.clip(idx, 0, k - 1)[..., None], axis=-1)[..., 0], tiny))
+    return peak + parabolic_offset(power, peak, lambda v: jnp.log(jnp.maximum(v, tiny)))
+
+
+def parabolic_offset(power: Float[Array, "P K"], peak: Int[Array, " P"], transform=lambda v: v):
+    """Sub-grid offset in [−½, ½] of a peak by a parabola through `transform`(power) at the peak
+    and its neighbours; 0 where the peak is on an edge or the parabola does not open downwards."""
+    k = power.shape[-1]
+    take = lambda idx: transform(jnp.take_along_axis(power, jnp.clip(idx, 0, k - 1)[:, None], axis=-1)[:, 0])
     a, b, c = take(peak - 1), take(peak), take(peak + 1)
     den = a - 2 * b + c
     interior = (den < 0) & (peak > 0) & (peak < k - 1)
-    delta = jnp.where(interior, 0.5 * (a - c) / jnp.where(interior, den, -1.0), 0.0)
-    return peak + jnp.clip(delta, -0.5, 0.5)
+    return jnp.clip(jnp.where(interior, 0.5 * (a - c) / jnp.where(interior, den, -1.0), 0.0), -0.5, 0.5)
+
+
+class CoarseSpectrum(eqx.Module):
+    """The coarse stage's result for a batch of pixels: power over its grid (DFT bins, or
+    depths of a periodogram), the strongest searched grid point, and — uniform sweeps — the
+    unitary rFFT bins themselves (the window ML fits them)."""
+
+    power: Float[Array, "P K"]
+    peak: Int[Array, " P"]
+    spectrum: Complex[Array, "P K"] | None = None
+
+
+class AbstractCoarseStage(eqx.Module):
+    """Where each pixel's tone is, and what its peak says: depth (at the peak, or
+    interpolated), the tone's amplitude A and the frequency-only bound σ."""
+
+    geometry: eqx.AbstractVar[SweepGeometry]
+    weights: eqx.AbstractVar[Float[Array, " K"]]  # sideband weights (the dominant one scales A)
+
+    @abc.abstractmethod
+    def __call__(self, sequence: Float[Array, "N P"]) -> CoarseSpectrum:
+        """The spectrum of carrier-aligned sequences (N, P) and its peaks."""
+
+    @abc.abstractmethod
+    def depth(self, coarse: CoarseSpectrum, interpolate: bool) -> Float[Array, " P"]:
+        """Depth (m) at the peak grid point, or between grid points (`interpolate`)."""
+
+    @abc.abstractmethod
+    def tone_amplitude(self, coarse: CoarseSpectrum) -> Float[Array, " P"]:
+        """The tone amplitude A (DN of I/Q) from the peak's power."""
+
+    @abc.abstractmethod
+    def frequency_only_sigma(self, amplitude, noise_var) -> Float[Array, " P"]:
+        """The frequency-only CRLB (m) at amplitude A and the measured noise."""
+
+    @property
+    @abc.abstractmethod
+    def grid_step_m(self):
+        """Depth between grid points: a depth read off the grid is uniform within ±½ of it."""
+
+    @property
+    @abc.abstractmethod
+    def description(self) -> str:
+        """The stage in words (recorded in the depth file's `frequency_path`)."""
+
+    def dc_edge(self, coarse: CoarseSpectrum) -> Bool[Array, " P"]:
+        """Pixels whose peak is the tail of a spectrum rising towards DC (none by default)."""
+        return jnp.zeros(coarse.peak.shape, bool)
+
+    @property
+    def dominant_weight(self):
+        return self.weights[self.geometry.dominant_order]
+
+
+class UniformSpectrum(AbstractCoarseStage):
+    """Unwindowed unitary rFFT over the frame index; its periodic-Hann power (a 3-tap
+    convolution of the same bins) gives the peak, searched from `min_bin` up (DC leakage and
+    slow drift live below)."""
+
+    geometry: SweepGeometry
+    weights: Float[Array, " K"]
+    min_bin: int = eqx.field(static=True, default=1)
+
+    def __call__(self, sequence) -> CoarseSpectrum:
+        spec = unitary_rfft(sequence)  # (P, K)
+        power = hann_power(spec, sequence.shape[0])
+        return CoarseSpectrum(power, coarse_peak(power, self.min_bin), spec)
+
+    def depth(self, coarse, interpolate):
+        n = self.geometry.num_frames
+        frac = interpolate_peak(coarse.power, coarse.peak) if interpolate else coarse.peak
+        return self.geometry.depth_from_folded(frac.astype(jnp.float64) / n)
+
+    def tone_amplitude(self, coarse):
+        # |H| = a·w·√N/4 at the Hann peak for a tone a·2w·cos (Hann gain ½)
+        peak_power = jnp.take_along_axis(coarse.power, coarse.peak[:, None], axis=-1)[:, 0]
+        return (
+            2 * jnp.sqrt(peak_power).astype(jnp.float64) / (math.sqrt(self.geometry.num_frames) * self.dominant_weight)
+        )
+
+    def frequency_only_sigma(self, amplitude, noise_var):
+        g = self.geometry
+        return crlb_frequency_only_m(
+            g.num_frames, g.step_hz, amplitude * 2 * self.dominant_weight, jnp.sqrt(noise_var), g.dominant_order
+        )
+
+    @property
+    def grid_step_m(self):
+        return self.geometry.bin_depth_m
+
+    @property
+    def description(self) -> str:
+        return "uniform sweep: rFFT over the frame index"
+
+    def dc_edge(self, coarse):
+        """A peak on the first searched bin with more power just below it: the tail of a
+        spectrum rising towards DC. Slow drift looks exactly so (at 35 frames a quadratic drift
+        and no echo gave 16 of 64 pixels "valid" at one bin, χ² < 5, all with this signature),
+        and so does an untracked turbulent carrier, whose mean term wanders."""
+        power = coarse.power
+        return (coarse.peak == self.min_bin) & (power[:, self.min_bin - 1] > power[:, self.min_bin])
+
+
+def delay_grid(frequencies_hz: np.ndarray, depth_window_m: tuple[float, float], points_per_envelope: int = 4):
+    """Depths (m) over the unambiguous window [max(0, start), end), spaced c/(2B)/points_per_envelope."""
+    f = np.asarray(frequencies_hz, np.float64)
+    envelope = C / (2 * (f[-1] - f[0]))
+    return np.arange(max(0.0, depth_window_m[0]), depth_window_m[1], envelope / points_per_envelope)
+
+
+class DelayPeriodogram(AbstractCoarseStage):
+    """Periodogram over delay on a depth grid (non-uniform schedules), O(N·G) a pixel: suited
+    to regions of interest and moderate N, not to full frames at video rate."""
+
+    geometry: SweepGeometry
+    weights: Float[Array, " K"]
+    frequencies_hz: Float[Array, " N"]
+    depths_m: Float[Array, " G"]
+
+    @classmethod
+    def of(cls, geometry: SweepGeometry, weights, frequencies_hz) -> DelayPeriodogram:
+        return cls(
+            geometry,
+            jnp.asarray(weights),
+            jnp.asarray(frequencies_hz),
+            jnp.asarray(delay_grid(frequencies_hz, geometry.depth_window_m)),
+        )
+
+    def __call__(self, sequence) -> CoarseSpectrum:
+        tau = self.geometry.system_delay_s + 2 * self.depths_m / C
+        cycles = self.frequencies_hz[:, None].astype(jnp.float64) * tau[None, :]
+        basis = jnp.exp(-2j * jnp.pi * (cycles - jnp.floor(cycles))).astype(jnp.complex64)  # (N, G)
+        centred = (sequence - jnp.mean(sequence, axis=0)).astype(jnp.float32)
+        power = jnp.abs(centred.T.astype(jnp.complex64) @ basis) ** 2  # (P, G)
+        return CoarseSpectrum(power, first_argmax(power))
+
+    def depth(self, coarse, interpolate):
+        at_peak = self.depths_m[coarse.peak]
+        return at_peak + parabolic_offset(coarse.power, coarse.peak) * self.grid_step_m if interpolate else at_peak
+
+    def tone_amplitude(self, coarse):
+        peak_power = jnp.take_along_axis(coarse.power, coarse.peak[:, None], axis=-1)[:, 0]
+        return 2 * jnp.sqrt(peak_power) / self.geometry.num_frames / (2 * self.dominant_weight)
+
+    def frequency_only_sigma(self, amplitude, noise_var):
+        return frequency_only_sigma_m(self.frequencies_hz, amplitude * 2 * self.dominant_weight, noise_var)
+
+    @property
+    def grid_step_m(self):
+        return self.depths_m[1] - self.depths_m[0]
+
+    @property
+    def description(self) -> str:
+        return "non-uniform schedule: periodogram over a depth grid"

@@ -10,8 +10,13 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 
-def iq_from_frames(frames: Array, iq_weights: Float[Array, "2 4"], iq_bias: Float[Array, " 2"],
-                   dark: Float[Array, "4 P"] | None = None, gain: Float[Array, "4 P"] | None = None):
+def iq_from_frames(
+    frames: Array,
+    iq_weights: Float[Array, "2 4"],
+    iq_bias: Float[Array, " 2"],
+    dark: Float[Array, "4 P"] | None = None,
+    gain: Float[Array, "4 P"] | None = None,
+):
     """[I, Q] = W @ ((DN − dark)/gain) + b; frames (4, N, P) in DN → I, Q of shape (N, P).
 
     `dark` per-pixel offsets, `gain` per-pixel gains relative to those folded into W; both
@@ -56,8 +61,9 @@ def carrier_axis(i: Float[Array, "N P"], q: Float[Array, "N P"]):
     return c, s, noise_var, phase
 
 
-def rotate_onto_axis(i: Float[Array, "N P"], q: Float[Array, "N P"], cos_phase: Float[Array, " P"],
-                     sin_phase: Float[Array, " P"]) -> Float[Array, "N P"]:
+def rotate_onto_axis(
+    i: Float[Array, "N P"], q: Float[Array, "N P"], cos_phase: Float[Array, " P"], sin_phase: Float[Array, " P"]
+) -> Float[Array, "N P"]:
     """The real sequence r = I cos φ + Q sin φ along each pixel's carrier axis."""
     return i * cos_phase + q * sin_phase
 
@@ -66,14 +72,14 @@ def align_carrier_static(i: Float[Array, "N P"], q: Float[Array, "N P"]):
     """`carrier_axis` then `rotate_onto_axis` → (r, noise_var, phase).
 
     Within one XLA CPU program the per-pixel cos φ, sin φ (and the arctan2 before them) are
-    fused into the rotation and recomputed for every frame (measured, 512 px × 3000 frames:
-    9 ms against 2 ms); the reconstruction therefore runs the two halves as separate
-    programs (`reconstruct.process_tile`). Fine for small arrays."""
+    fused into the rotation and recomputed for every frame; the reconstruction therefore runs
+    the two halves as separate programs (`reconstruct.programs`; docs/performance.md). Fine
+    for small arrays."""
     c, s, noise_var, phase = carrier_axis(i, q)
     return rotate_onto_axis(i, q, c, s), noise_var, phase
 
 
-def _moving_average(x: Array, window: int) -> Array:
+def moving_average(x: Array, window: int) -> Array:
     """Centred moving average along axis 0 with a window shrinking at the ends."""
     n = x.shape[0]
     half = window // 2
@@ -85,7 +91,9 @@ def _moving_average(x: Array, window: int) -> Array:
     return (c[hi] - c[lo]) / count
 
 
-def track_carrier_drift(i: Float[Array, "N P"], q: Float[Array, "N P"], window_frames: int = 101) -> Float[Array, "N P"]:
+def track_carrier_drift(
+    i: Float[Array, "N P"], q: Float[Array, "N P"], window_frames: int = 101
+) -> Float[Array, "N P"]:
     """Slow drift φ[m] of the optical carrier phase (turbulence), per pixel, zero-mean.
 
     Z[m] = e^{iφ[m]}·A·S[m] and S[m] = w_0 + 2Σ w_n cos(nψ_m) keeps the sign of its mean
@@ -95,7 +103,7 @@ def track_carrier_drift(i: Float[Array, "N P"], q: Float[Array, "N P"], window_f
     SNR; demodulating at the tone uses the weaker w_1.) Requires w_0 > 0 (any bias but
     θ_b = π/2) and a hybrid without common-mode leakage: calibrate the hybrid first."""
     z = (i + 1j * q).astype(jnp.complex64 if i.dtype == jnp.float32 else jnp.complex128)
-    phase = jnp.unwrap(jnp.angle(_moving_average(z, window_frames)), axis=0)
+    phase = jnp.unwrap(jnp.angle(moving_average(z, window_frames)), axis=0)
     return phase - jnp.mean(phase, axis=0)
 
 

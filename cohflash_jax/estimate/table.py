@@ -7,7 +7,7 @@ once, on a depth grid over the unambiguous window, with its first K depth deriva
 
 1. basin search: the projected likelihood on the grid, (y·t̂_g)² for the mean-removed data y
    and unit tones t̂_g, is one matrix product for a whole tile; the best point within the
-   coarse stage's ±half-width (as `estimate.ml`'s grid) is picked;
+   coarse stage's ±half-width (as `window_ml`'s grid) is picked;
 2. polish: about that point t(d_g + u·s) = Σ_j u^j/j!·R_j (R_j = s^j ∂^j t/∂d^j, spacing s) is a
    polynomial in u, so the projected cost −(y·t)²/|t|² is a ratio of polynomials whose
    coefficients are K+1 dot products a pixel; Newton's method (`polish_depth`) runs on it;
@@ -15,13 +15,13 @@ once, on a depth grid over the unambiguous window, with its first K depth deriva
    domain over every frame (exact ML, not a DFT window).
 
 The grid spacing keeps the Taylor remainder below `TAYLOR_TOLERANCE` of the tone within
-±half a spacing (`table_spacing_m`). Measured on the 35-frame 10 Hz mode: see
-`reconstruct.TABLE_MAX_FRAMES`.
+±half a spacing (`table_spacing_m`).
 """
 
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -30,9 +30,12 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
+from ..fisher import depth_information, phase_locked_sigma_m, sigma_from_information, well_posed
+from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult
 from .coarse import first_argmax
-from .ml import (MAX_VARIANCE_INFLATION, STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA, FitResult, UniformModel,
-                 phase_locked_sigma_m, polish_depth, tone_cancels_offset, variance_inflation)
+from .polish import STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA, polish_depth
+from .window_ml import grid_for
+from .window_model import UniformModel
 
 TAYLOR_ORDER = 6  # derivatives tabulated per grid depth (K)
 TAYLOR_TOLERANCE = 1e-6  # Taylor remainder at half a spacing, relative to the dominant tone
@@ -85,8 +88,14 @@ class ToneTable(eqx.Module):
         return self.rows.shape[0]
 
 
-def build_tone_table(frequencies_hz, weights, system_delay_s: float, depth_range_m: tuple[float, float],
-                     spacing_m: float, order: int = TAYLOR_ORDER) -> ToneTable:
+def build_tone_table(
+    frequencies_hz,
+    weights,
+    system_delay_s: float,
+    depth_range_m: tuple[float, float],
+    spacing_m: float,
+    order: int = TAYLOR_ORDER,
+) -> ToneTable:
     """`ToneTable` over [depth_range_m] (NumPy, float64; the phases reduced modulo 2π)."""
     f = np.asarray(frequencies_hz, np.float64)
     w = np.asarray(weights, np.float64)
@@ -110,8 +119,14 @@ def build_tone_table(frequencies_hz, weights, system_delay_s: float, depth_range
             coeffs[:, i + j] += gram[:, i, j]
     norm0 = np.sqrt(np.maximum(coeffs[:, 0], 1e-300))
     unit = (exact[:, 0] / norm0[:, None]).T.astype(np.float32)
-    return ToneTable(jnp.asarray(unit), jnp.asarray(centred), jnp.asarray(means), jnp.asarray(coeffs),
-                     float(depth_range_m[0]), float(spacing_m))
+    return ToneTable(
+        jnp.asarray(unit),
+        jnp.asarray(centred),
+        jnp.asarray(means),
+        jnp.asarray(coeffs),
+        float(depth_range_m[0]),
+        float(spacing_m),
+    )
 
 
 def inverse_factorials(count: int) -> np.ndarray:
@@ -135,9 +150,17 @@ def _taylor(rows, u):
     return value, slope
 
 
-def refine_ml_table(table: ToneTable, model: UniformModel, r: Float[Array, "N P"], coarse_depth_m: Float[Array, " P"],
-                    noise_var: Float[Array, " P"], *, half_width_m: float, max_steps: int,
-                    prefer_positive: bool = False) -> FitResult:
+def refine_ml_table(
+    table: ToneTable,
+    model: UniformModel,
+    r: Float[Array, "N P"],
+    coarse_depth_m: Float[Array, " P"],
+    noise_var: Float[Array, " P"],
+    *,
+    half_width_m: float,
+    max_steps: int,
+    prefer_positive: bool = False,
+) -> FitResult:
     """ML depth of each pixel of the carrier-aligned sequences r (N, P) from `table`: the
     basin search within ±`half_width_m` of the coarse depth, the polish, the final fit.
     `prefer_positive`: pick the best grid point with a positive amplitude where there is one
@@ -197,14 +220,92 @@ def refine_ml_table(table: ToneTable, model: UniformModel, r: Float[Array, "N P"
     # Fisher information of (depth, c, A), per unit noise variance: c is eliminated exactly by
     # the mean-removed columns, A by the Schur complement; ∂t/∂d = (∂t/∂u)/s
     du_sq = jnp.sum(tone_u * tone_u, axis=-1)
-    f_dd_centred = amp**2 * du_sq / s**2
     f_da = amp * jnp.sum(tone_u * tone, axis=-1) / s
-    schur_unit = f_dd_centred - f_da**2 / tone_sq
-    schur = schur_unit / jnp.maximum(noise_var, 1e-30)
-    sigma = jnp.where(schur > 0, 1 / jnp.sqrt(jnp.maximum(schur, 1e-300)), jnp.inf)
+    schur_unit = depth_information(amp**2 * du_sq / s**2, f_da, tone_sq)
+    sigma = sigma_from_information(schur_unit / jnp.maximum(noise_var, 1e-30))
     f_dd = amp**2 * (du_sq + n * mean_tone_u**2) / s**2
-    well_posed = ~tone_cancels_offset(amp, tone_sq + n * mean_tone**2, data_sq + n * mean_r**2) & (
-        variance_inflation(f_dd, schur_unit) <= MAX_VARIANCE_INFLATION)
+    posed = well_posed(amp, tone_sq + n * mean_tone**2, data_sq + n * mean_r**2, f_dd, schur_unit)
     depth = table.start_m + s * (best.astype(jnp.float64) + u)
     converged = solved & within & jnp.isfinite(cost)
-    return FitResult(depth, offset, amp, sigma, converged, num_steps, cost, well_posed)
+    return FitResult(depth, offset, amp, sigma, converged, num_steps, cost, posed)
+
+
+# `ml` on uniform sweeps of at most this many frames fits every frame from a tone table, if the
+# table needs at most `TABLE_MAX_POINTS` grid depths (its basin search is a (P, N)·(N, G)
+# product, O(N·G) a pixel); longer sweeps, and narrow ones high in frequency (thousands of
+# depths), fit the DFT window (`window_ml`). Timings: docs/performance.md.
+TABLE_MAX_FRAMES = 64
+TABLE_MAX_POINTS = 1024
+
+
+def table_fits(setup: EstimatorSetup) -> bool:
+    """Whether a tone table serves this configuration (`TABLE_MAX_FRAMES`, `TABLE_MAX_POINTS`)."""
+    g = setup.geometry
+    if not g.uniform or g.num_frames > TABLE_MAX_FRAMES:
+        return False
+    return (
+        table_points(_table_span(setup), table_spacing_m(setup.frequencies_hz, setup.model.weights)) <= TABLE_MAX_POINTS
+    )
+
+
+def _table_span(setup: EstimatorSetup) -> tuple[float, float]:
+    """Depths the table spans: the unambiguous window and the basin search's reach beyond it."""
+    g = setup.geometry
+    half, _, _ = grid_for(g.bin_depth_m, g.ripple_m)
+    spacing = table_spacing_m(setup.frequencies_hz, setup.model.weights)
+    return g.depth_window_m[0] - half - spacing, g.depth_window_m[1] + half + spacing
+
+
+class TableML(AbstractDepthEstimator):
+    """Phase-locked maximum likelihood over every frame from a tone table (short uniform
+    sweeps, such as the paper's 10 Hz mode): basin search within ±1 bin of the coarse depth,
+    Newton's polish on the Taylor polynomial, the exact final fit (`refine_ml_table`)."""
+
+    refines: ClassVar[bool] = True
+
+    @property
+    def description(self) -> str:
+        return f"ML over all frames from a tone table ({self.table.num_points} depths)"
+
+    table: ToneTable
+    model: UniformModel
+    half_width_m: float = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+    prefer_positive: bool = eqx.field(static=True)
+
+    @classmethod
+    def build(cls, setup: EstimatorSetup) -> TableML:
+        g = setup.geometry
+        half, _, candidates = grid_for(g.bin_depth_m, g.ripple_m)
+        spacing = table_spacing_m(setup.frequencies_hz, setup.model.weights)
+        table = build_tone_table(
+            setup.frequencies_hz, setup.model.weights, g.system_delay_s, _table_span(setup), spacing
+        )
+        return cls(table, setup.model, half, setup.max_steps, candidates > 1)
+
+    def estimate(self, stage, coarse, sequence, noise_var) -> DepthEstimate:
+        coarse_depth = stage.depth(coarse, interpolate=True)
+        fit = refine_ml_table(
+            self.table,
+            self.model,
+            sequence,
+            coarse_depth,
+            noise_var,
+            half_width_m=self.half_width_m,
+            max_steps=self.max_steps,
+            prefer_positive=self.prefer_positive,
+        )
+        # reduced χ² over the N frames less the three fitted unknowns (noise floored as the
+        # window fit floors it)
+        n = sequence.shape[0]
+        floor = 1e-9 * jnp.mean(jnp.square(sequence.astype(jnp.float64)), axis=0)
+        chi2 = fit.cost / (jnp.maximum(noise_var, jnp.maximum(floor, 1e-30)) * (n - 3))
+        return DepthEstimate(
+            fit.depth_m,
+            jnp.abs(fit.amplitude),
+            fit.sigma_depth_m,
+            coarse_depth,
+            fit.converged,
+            fit.finite_and_well_posed(),
+            chi2,
+        )

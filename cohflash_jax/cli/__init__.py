@@ -1,0 +1,55 @@
+"""The `cohflash` command: one module per command, each with `add_parser(subparsers)` and
+`run(args)`. To add a command: write its module and add it to `COMMANDS`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ..runtime import enable_compilation_cache, use_cpu_streams
+from . import calibrate, demo, design, reconstruct, scenes, simulate, sweep, uncertainty
+from .common import check_output_paths
+from .reconstruct import run_reconstruct, summary
+
+COMMANDS = (demo, simulate, reconstruct, calibrate, sweep, design, uncertainty, scenes)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .. import __version__
+
+    p = argparse.ArgumentParser(
+        prog="cohflash",
+        description="Stepped-frequency coherent flash LiDAR: simulate "
+        "captures, reconstruct depth with stated uncertainty.",
+    )
+    p.add_argument("--version", action="version", version=f"cohflash {__version__}")
+    sub = p.add_subparsers(dest="command", required=True)
+    for command in COMMANDS:
+        command.add_parser(sub)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    enable_compilation_cache()
+    use_cpu_streams()
+    try:
+        check_output_paths(args)
+        return args.func(args)
+    except BrokenPipeError:  # e.g. `cohflash scenes | head` (before OSError, of which it is one)
+        sys.stderr.close()
+        return 0
+    except (ValueError, FileNotFoundError, NotImplementedError, OSError) as exc:
+        print(f"cohflash {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        if args.command == "sweep":
+            print(
+                f"interrupted; the finished points are in {args.out}: rerun the same command to resume", file=sys.stderr
+            )
+        else:
+            print("interrupted; no partial output was kept", file=sys.stderr)
+        return 130
+
+
+__all__ = ["COMMANDS", "build_parser", "main", "run_reconstruct", "summary"]

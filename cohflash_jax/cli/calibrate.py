@@ -1,0 +1,164 @@
+"""`cohflash calibrate`: four-CCD registration from chessboard views (`registration`), and the
+hybrid, modulator and τ_sys from a stepped-frequency capture of a calibration target (`hybrid`)."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from .common import HelpFormatter, add_quiet
+
+DEFAULT_MAX_PIXELS = 1024
+
+
+def add_parser(sub) -> None:
+    cal = sub.add_parser("calibrate", help="calibration of the instrument from captures")
+    calsub = cal.add_subparsers(dest="what", required=True)
+    cr = calsub.add_parser(
+        "registration",
+        help="four-CCD registration from chessboard views (Zhang, OpenCV)",
+        formatter_class=HelpFormatter,
+    )
+    cr.add_argument(
+        "--images",
+        nargs=4,
+        required=True,
+        metavar=("CCD1_DIR", "CCD2_DIR", "CCD3_DIR", "CCD4_DIR"),
+        help="one folder of chessboard images per CCD; a view is the same file name in every folder",
+    )
+    cr.add_argument("--board", required=True, help="inner corners COLSxROWS, e.g. 9x6")
+    cr.add_argument("--square-mm", type=float, required=True, help="chessboard square size (mm)")
+    cr.add_argument("--out", required=True, help="registration JSON to write")
+    cr.add_argument("--report", help="report figure (PNG): corners, per-view errors, XOR images")
+    cr.add_argument(
+        "--distance-mm",
+        type=float,
+        default=None,
+        help="working distance for the pixel maps (default: median board distance)",
+    )
+    add_quiet(cr)
+    cr.set_defaults(func=run_registration)
+    ch = calsub.add_parser(
+        "hybrid",
+        help="per-CCD phase/gain/offset, modulation index and roll-off, τ_sys "
+        "from a stepped-frequency capture of a calibration target (optimistix)",
+        formatter_class=HelpFormatter,
+    )
+    ch.add_argument(
+        "capture",
+        help="capture of a flat, uniform target; the carrier phase must drift within pixels "
+        "(turbulence or a reference-arm phase ramp) for the hybrid's phases and gains",
+    )
+    ch.add_argument("--out", required=True, help="calibration file: .json, or .h5 to keep per-pixel maps")
+    ch.add_argument("--dark", help="dark capture (light blocked): per-pixel offset map, and o_1")
+    ch.add_argument(
+        "--flat", help="flat-field capture (reference only, echo blocked; needs --dark): per-pixel relative gain maps"
+    )
+    ch.add_argument(
+        "--known-distance-m", type=float, default=None, help="target distance; without it τ_sys is not identifiable"
+    )
+    ch.add_argument("--max-pixels", type=int, default=DEFAULT_MAX_PIXELS, help="strongest valid pixels used")
+    ch.add_argument("--report", help="report figure (PNG): I/Q before/after, tone taper, drift")
+    add_quiet(ch)
+    ch.set_defaults(func=run_hybrid)
+
+
+def run_registration(args) -> int:
+    from cohflash_calibration.board import Board
+    from cohflash_calibration.registration import register, save_report, write_registration
+
+    board = Board.parse(args.board, args.square_mm)
+    reg = register(args.images, board, args.distance_mm, progress=not args.quiet)
+    write_registration(args.out, reg)
+    if args.report:
+        save_report(args.report, reg)
+    print(f"wrote {args.out}: image {reg.image_size[0]}×{reg.image_size[1]}, working distance {reg.distance_mm:.0f} mm")
+    for k, c in enumerate(reg.cameras, start=1):
+        kk = c.camera_matrix
+        print(
+            f"  CCD {k}: f = {kk[0, 0]:.2f} ± {c.std_intrinsics[0]:.2f} px, c = ({kk[0, 2]:.2f}, {kk[1, 2]:.2f}) px, "
+            f"RMS {c.rms_px:.3f} px over {len(c.views_used)} views"
+            + (
+                f"; left out: {', '.join(f'{n} ({r})' for n, r in c.views_left_out.items())}"
+                if c.views_left_out
+                else ""
+            )
+        )
+    import cv2
+
+    for k, (r, t, s, b, a) in enumerate(zip(reg.R, reg.T, reg.stereo_rms_px, reg.xor_before, reg.xor_after), start=2):
+        ang = float(np.rad2deg(np.linalg.norm(cv2.Rodrigues(np.asarray(r))[0])))
+        print(
+            f"  CCD {k} vs CCD 1: rotation {ang:.3f}°, translation {np.linalg.norm(t):.2f} mm, stereo RMS {s:.3f} px; "
+            f"XOR misalignment {b:.2%} → {a:.2%}"
+        )
+    if reg.failed:
+        print("views left out (board not found): " + ", ".join(reg.failed))
+    print(f"{reg.seconds_per_view * 1e3:.0f} ms per view")
+    return 0
+
+
+def plus_minus(entry, scale=1.0, unit="", digits=4) -> str:
+    """A calibration file's {"value", "sigma", "note"} entry as 'v ± σ unit', or why it is not identified."""
+    if entry.get("value") is None:
+        return "not identified: " + entry.get("note", "")
+    sig = entry.get("sigma")
+    text = f"{entry['value'] * scale:.{digits}g}" + (f" ± {sig * scale:.2g}" if sig is not None else "")
+    return text + unit + (f" ({entry['note']})" if entry.get("note") else "")
+
+
+def run_hybrid(args) -> int:
+    import warnings
+
+    from ..calibration_file import write_calibration
+    from ..constants import SPEED_OF_LIGHT_M_PER_S as C
+    from ..hybrid_fit import calibrate_hybrid, save_hybrid_report
+
+    result = calibrate_hybrid(
+        args.capture,
+        dark_path=args.dark,
+        flat_path=args.flat,
+        known_distance_m=args.known_distance_m,
+        max_pixels=args.max_pixels,
+        progress=not args.quiet,
+    )
+    doc = result["document"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        write_calibration(args.out, doc, result["maps"])
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
+    if args.report:
+        save_hybrid_report(args.report, result)
+    fit, hyb, mod = doc["fit"], doc["hybrid"], doc["modulator"]
+    print(f"wrote {args.out}: {fit['pixels']} pixels × {fit['frames']} frames; gauge {doc['gauge']}")
+    print(f"carrier: {fit['carrier_drift']}")
+    if hyb["phases_rad"] is None:
+        print(f"hybrid: {hyb['note']}")
+    else:
+        for k in range(4):
+            print(
+                f"  CCD {k + 1}: phase {np.degrees(hyb['phases_rad'][k]):8.3f} ± "
+                f"{np.degrees(hyb['phases_sigma_rad'][k]):.3f}°"
+                f", gain {hyb['relative_gains'][k]:.4f} ± {hyb['relative_gains_sigma'][k]:.4f}"
+                f", offset {hyb['offsets_dn'][k]:8.2f} ± {hyb['offsets_sigma_dn'][k]:.2f} DN"
+            )
+        print(f"  χ²/dof {fit['hybrid_chi2_per_dof']:.3f}")
+    print(f"modulation index β: {plus_minus(mod['modulation_index'])}")
+    print(f"roll-off f_3dB: {plus_minus(mod['rolloff_3db_hz'], 1e-9, ' GHz')}")
+    print(
+        f"bias: {plus_minus(mod['bias_rad'], unit=' rad')}   (χ²/dof {fit['modulator_chi2_per_dof']:.3f} over "
+        f"{fit['modulator_pixels']} pixels)"
+    )
+    delay = doc["system_delay_s"]
+    if delay["value"] is None:
+        print(f"system delay τ_sys: not identified: {delay['note']}")
+    else:
+        print(
+            f"system delay τ_sys: {delay['value'] * 1e9:.6f} ± {delay['sigma'] * 1e9:.6f} ns "
+            f"(path offset {delay['value'] * C / 2 * 1e3:.3f} ± {delay['sigma'] * C / 2 * 1e3:.3f} mm in depth)"
+        )
+    if result["maps"]:
+        print("per-pixel maps: " + ", ".join(sorted(result["maps"])))
+    return 0

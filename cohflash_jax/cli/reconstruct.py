@@ -1,0 +1,161 @@
+"""`cohflash reconstruct`: depth from a capture → depth.h5 (+ PNG, TIFF, PLY)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..estimate import METHODS
+from ..reconstruct.policy import DEFAULT_MAX_FIT_CHI2, DEFAULT_SNR_THRESHOLD_DB, DEFAULT_TILE_ROWS, ReconstructOptions
+from ..status import Status
+from .common import HelpFormatter, add_quiet, provenance, range_mm
+
+
+def add_parser(sub) -> None:
+    r = sub.add_parser(
+        "reconstruct", help="depth from a capture → depth.h5 (+ PNG, TIFF, PLY)", formatter_class=HelpFormatter
+    )
+    r.add_argument("capture", help="capture file (format v1, .h5)")
+    r.add_argument("--out", required=True, help="depth result file (.h5)")
+    r.add_argument(
+        "--method",
+        choices=tuple(METHODS),
+        default="ml",
+        help="estimator: " + "; ".join(f"{k}: {m.help}" for k, m in METHODS.items()),
+    )
+    r.add_argument("--calibration", help="calibration file (.json or .h5) from `cohflash calibrate hybrid`")
+    r.add_argument(
+        "--max-fit-chi2",
+        type=float,
+        default=DEFAULT_MAX_FIT_CHI2,
+        help="ml: flag pixels whose fit has a larger reduced χ² (status 9, poor_fit)",
+    )
+    r.add_argument(
+        "--min-depth-m",
+        type=float,
+        default=0.0,
+        help="coarse search ignores shallower depths (clutter near DC: drift, leakage)",
+    )
+    r.add_argument("--registration", help="four-CCD registration JSON from `cohflash calibrate registration`")
+    r.add_argument("--tracking", action="store_true", help="track a drifting carrier phase (turbulence)")
+    r.add_argument("--png", help="colour-mapped depth preview with a colour bar in mm")
+    r.add_argument("--tiff", help="float32 depth TIFF in metres (NaN = invalid)")
+    r.add_argument("--ply", help="point cloud of valid pixels")
+    r.add_argument(
+        "--png-range-mm",
+        type=range_mm,
+        default=None,
+        help="LO,HI colour limits of the PNG in mm relative to the median depth (default: 1st–99th percentile)",
+    )
+    r.add_argument(
+        "--tile-rows",
+        type=int,
+        default=DEFAULT_TILE_ROWS,
+        help="rows per streamed tile (memory vs speed; 32 matches the chunking cohflash writes)",
+    )
+    r.add_argument(
+        "--snr-threshold-db",
+        type=float,
+        default=DEFAULT_SNR_THRESHOLD_DB,
+        help="validity threshold on the peak-bin SNR (raised by 10·log10(1/(1 − √(2/(N−1)))) for the "
+        "noise estimate's error from N frames)",
+    )
+    r.add_argument(
+        "--dtype", choices=("float32", "float64"), default="float32", help="I/Q and FFT precision (ML always float64)"
+    )
+    add_quiet(r)
+    r.set_defaults(func=run)
+
+
+def run_reconstruct(
+    capture_path,
+    out,
+    options,
+    calibration=None,
+    png=None,
+    ply=None,
+    tiff=None,
+    png_reference_m=None,
+    png_range_mm=None,
+    registration=None,
+):
+    """Reconstruct a capture file and write depth.h5 and the exports asked for → the
+    `reconstruct.Reconstruction`. The capture is opened once."""
+    from ..capture import Capture
+    from ..reconstruct import open_and_reconstruct
+    from ..results import save_depth_tiff, save_ply, save_preview_png, write_depth
+
+    capture_path = Path(capture_path)
+    with Capture(capture_path) as cap:
+        result = open_and_reconstruct(capture_path, options, calibration, registration, capture=cap)
+    outputs, meta = result.outputs, result.meta
+    write_depth(out, outputs, meta, provenance(capture_path, options))
+    if png:
+        save_preview_png(
+            png,
+            outputs["depth_m"],
+            outputs["valid"],
+            title=f"{capture_path.name}: {meta['method']} depth, {outputs['valid'].mean():.1%} valid",
+            reference_m=png_reference_m,
+            range_mm=png_range_mm,
+        )
+    if ply:
+        save_ply(ply, outputs["depth_m"], outputs["valid"], outputs["amplitude"], result.instrument.field_of_view_deg)
+    if tiff:
+        save_depth_tiff(tiff, outputs["depth_m"], outputs["valid"])
+    return result
+
+
+def summary(outputs, meta) -> str:
+    """What a reconstruction found, in a few lines."""
+    import json
+
+    valid = outputs["valid"].astype(bool)
+    counts = np.bincount(outputs["fit_status"].astype(int).ravel(), minlength=len(Status))
+    flagged = ", ".join(f"{Status(k).message} {c}" for k, c in enumerate(counts) if k and c)
+    start, end = meta.get("depth_window_m", (0.0, meta["ambiguity_m"]))
+    lines = [
+        f"method {meta['method']} ({meta['carrier_alignment']} carrier alignment); unambiguous depths "
+        f"[{start:.3f}, {end:.3f}) m; DFT bin {meta['bin_depth_m'] * 1e3:.2f} mm",
+        f"valid pixels {valid.sum()} / {valid.size} ({valid.mean():.1%})"
+        + (f"; flagged: {flagged}" if flagged else ""),
+    ]
+    if valid.any():
+        d = outputs["depth_m"][valid]
+        lines.append(
+            f"depth {d.min():.4f} … {d.max():.4f} m; median predicted σ "
+            f"{np.median(outputs['sigma_m'][valid]) * 1e3:.3f} mm"
+        )
+    lines += [f"note: {n}" for n in json.loads(meta.get("notes", "[]"))]
+    lines.append(f"reconstruction {meta['seconds']:.2f} s")
+    return "\n".join(lines)
+
+
+def options_from_args(args) -> ReconstructOptions:
+    return ReconstructOptions(
+        method=args.method,
+        tracking=args.tracking,
+        tile_rows=args.tile_rows,
+        snr_threshold_db=args.snr_threshold_db,
+        dtype=args.dtype,
+        progress=not args.quiet,
+        min_depth_m=args.min_depth_m,
+        max_fit_chi2=args.max_fit_chi2,
+    )
+
+
+def run(args) -> int:
+    result = run_reconstruct(
+        args.capture,
+        args.out,
+        options_from_args(args),
+        args.calibration,
+        args.png,
+        args.ply,
+        args.tiff,
+        png_range_mm=args.png_range_mm,
+        registration=args.registration,
+    )
+    print(f"wrote {args.out}\n" + summary(result.outputs, result.meta))
+    return 0

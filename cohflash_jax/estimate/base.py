@@ -1,0 +1,99 @@
+"""The estimator interface: what every depth estimator takes and returns.
+
+In the style of optimistix's solvers: an abstract base (`AbstractDepthEstimator`) with one
+abstract method, concrete final classes (one file each, registered in `estimate.registry`),
+each an `eqx.Module` holding its settings and per-configuration tables, each returning one
+typed per-pixel result (`DepthEstimate`). The coarse stage (`estimate.coarse`) runs first and
+is shared: a DFT-peak estimator reads its answer off it, the ML estimators start from it.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from typing import ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from ..geometry import SweepGeometry
+from .window_model import UniformModel
+
+
+class DepthEstimate(eqx.Module):
+    """One estimator's answer for a batch of pixels; every field (P,).
+
+    `amplitude` is the tone amplitude A (DN of I/Q, ≥ 0: the 2-D intensity image); `sigma_m`
+    the CRLB-predicted standard deviation at the fitted values; `coarse_depth_m` the coarse
+    stage's depth it started from; `converged` whether an iterative fit converged (always
+    True for a direct read-out); `fit_ok` whether the answer is finite and well posed;
+    `fit_chi2` the reduced χ² of a fit (−1 where the estimator computes none)."""
+
+    depth_m: Float[Array, " P"]
+    amplitude: Float[Array, " P"]
+    sigma_m: Float[Array, " P"]
+    coarse_depth_m: Float[Array, " P"]
+    converged: Bool[Array, " P"]
+    fit_ok: Bool[Array, " P"]
+    fit_chi2: Float[Array, " P"]
+
+
+class FitResult(eqx.Module):
+    """A model fit's raw result (per pixel, or per pixel and candidate), before it becomes a
+    `DepthEstimate`: the depth, the projected-out offset c and signed amplitude A, σ, the
+    solver's convergence and steps, the residual cost, and whether the fit is well posed
+    (`fisher.well_posed`)."""
+
+    depth_m: Float[Array, "..."]
+    offset: Float[Array, "..."]
+    amplitude: Float[Array, "..."]
+    sigma_depth_m: Float[Array, "..."]
+    converged: Array
+    num_steps: Array
+    cost: Float[Array, "..."]
+    well_posed: Array
+
+    def finite_and_well_posed(self):
+        """Finite depth, σ and amplitude, and a well-posed fit: the answer may be used."""
+        finite = jnp.isfinite(self.depth_m) & jnp.isfinite(self.sigma_depth_m) & jnp.isfinite(self.amplitude)
+        return finite & self.well_posed
+
+
+@dataclasses.dataclass(frozen=True)
+class EstimatorSetup:
+    """What an estimator is built from, once per configuration: the sweep's schedule, its
+    geometry, the phase-locked tone model (sideband weights, τ_sys), and the fit's limits."""
+
+    frequencies_hz: np.ndarray
+    geometry: SweepGeometry
+    model: UniformModel
+    window_bins: int = 17
+    max_steps: int = 16
+
+
+class AbstractDepthEstimator(eqx.Module):
+    """Depth per pixel from its carrier-aligned sequence and the shared coarse stage.
+
+    `refines`: the estimator may move beyond the coarse stage's bin (a model fit). Its depths
+    are then reflected into a mirror-symmetric sweep's window, and a pixel whose fit ran more
+    than two bins from the coarse depth is flagged out of range."""
+
+    refines: ClassVar[bool] = False
+
+    @property
+    def description(self) -> str:
+        """What the estimator adds to the coarse stage, in words ("" for a read-out)."""
+        return ""
+
+    @classmethod
+    @abc.abstractmethod
+    def build(cls, setup: EstimatorSetup) -> AbstractDepthEstimator:
+        """The estimator for a configuration (its tables are computed here, once)."""
+
+    @abc.abstractmethod
+    def estimate(self, stage, coarse, sequence: Float[Array, "N P"], noise_var: Float[Array, " P"]) -> DepthEstimate:
+        """Depth of each pixel: `stage` the coarse stage (`estimate.coarse`), `coarse` its
+        result for these pixels, `sequence` the carrier-aligned real sequences, `noise_var`
+        the per-pixel noise variance measured in the quadrature channel."""

@@ -1,0 +1,382 @@
+"""Window ML: maximum-likelihood depth beyond the DFT bin (uniform sweeps), with optimistix.
+
+The phase-locked model (`window_model`) is fitted on the W ≈ 17 bins around each pixel's
+peak: for a tone in white noise that gives the precision of the full time-domain fit from
+~1 % of the residuals (docs/physics.md). The model is linear in (c, A), so those are
+projected out: the nonlinear fit is one unknown, the depth offset from the coarse estimate in
+millimetres. A grid of the projected cost over ±1 bin picks the basin of the right likelihood
+ripple (period c/(2 f̄)) before Newton's method polishes it (`polish.polish_depth`). float64
+throughout: it is ~20 numbers per pixel.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Complex, Float, Int
+
+from ..constants import SPEED_OF_LIGHT_M_PER_S as C
+from ..fisher import depth_information, phase_locked_sigma_m, sigma_from_information, well_posed
+from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult
+from .polish import STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA, descended, polish_depth
+from .window_model import Phasors, UniformModel, WindowData, WindowTables, bin_weights, shift_phasors, window_tables
+
+
+class PixelFit(eqx.Module):
+    """One pixel's fit between its stages (`prepare_pixel`, the polish, `finish_pixel`): the
+    ω-weighted window, its tables, the tone's phasors at the coarse depth, the data scale, the
+    polish's starts (mm from the coarse depth) and ceilings (`descended`), one per basin
+    candidate, and the polish's step tolerance (mm)."""
+
+    data: WindowData
+    tables: WindowTables
+    omega: Float[Array, " W"]
+    base: Phasors
+    scale: Float[Array, ""]
+    starts_mm: Float[Array, " C"]
+    ceilings: Float[Array, " C"]
+    tolerance_mm: Float[Array, ""]
+
+    def weighted_tone(self, model: UniformModel, rotation: Phasors, max_order: int | None = None):
+        """The ω-weighted tone (Re, Im) with the phasors moved by `rotation` (`UniformModel.rotation`)."""
+        re, im = model.tone_from_phasors(shift_phasors(self.base, rotation), self.tables, max_order)
+        return re * self.omega, im * self.omega
+
+    def cost_at(self, model: UniformModel, rotation: Phasors, max_order: int | None = None):
+        """Projected cost: residual energy after the least-squares (c, A)."""
+        _, res_re, res_im = self.data.project(*self.weighted_tone(model, rotation, max_order))
+        return res_re @ res_re + res_im @ res_im
+
+    def cost(self, model: UniformModel):
+        """The projected cost as a function of the depth offset (mm), every order modelled."""
+        return lambda offset_mm: self.cost_at(model, model.rotation(1e-3 * offset_mm))
+
+
+def prepare_pixel(
+    model: UniformModel,
+    window: Complex[Array, " W"],
+    k0,
+    coarse_depth_m,
+    noise_var,
+    *,
+    grid_half_width_m: float,
+    grid_points: int,
+    candidates: int = 1,
+    grid_max_order: int | None = None,
+) -> PixelFit:
+    """The window's data and the basin search: the projected cost on a grid over
+    ±grid_half_width around the coarse depth picks where the polish starts. The grid models
+    the orders up to `grid_max_order` (all where None)."""
+    n = model.num_frames
+    tables = window_tables(k0, window.shape[0], n)
+    omega = bin_weights(tables, n)
+    scale = jnp.maximum(jnp.max(jnp.abs(window)), 1e-30)
+    data = WindowData(
+        jnp.real(window) * omega / scale, jnp.imag(window) * omega / scale, model.dc_column(tables) * omega
+    )
+    # the tone at the coarse depth; an offset δ rotates its phasors by e^{iκδ} (`rotation`)
+    pix = PixelFit(
+        data,
+        tables,
+        omega,
+        model.phasors(coarse_depth_m),
+        scale,
+        jnp.zeros(candidates),
+        jnp.zeros(candidates),
+        jnp.zeros(()),
+    )
+
+    # basin search: projected cost on a grid spanning ±grid_half_width around the coarse
+    # depth (its rotations are constants). Where a strong harmonic's alias falls inside the
+    # window the fundamental-only cost misjudges the ripples (measured: 6× the full cost at the
+    # minima on a 5.1–5.7 GHz sweep), so the grid models every order down to `grid_max_order`
+    grid_mm = np.linspace(-1e3 * grid_half_width_m, 1e3 * grid_half_width_m, grid_points)
+    grid_rotations = jax.tree.map(jnp.asarray, model.rotation(1e-3 * grid_mm, xp=np))
+    costs = jax.vmap(lambda r: pix.cost_at(model, r, grid_max_order))(grid_rotations)
+    # polish the best `candidates` local minima of the grid and keep the lowest: where the
+    # ripple is narrower than the grid can resolve, the best grid point may sit on the wrong one
+    padded = jnp.concatenate([jnp.array([jnp.inf]), costs, jnp.array([jnp.inf])])
+    left, right = padded[:-2], padded[2:]
+    local_min = (costs <= left) & (costs <= right)
+    # rank the minima by the minimum of the cosine through each and its neighbours, not by the
+    # grid value: with a signed amplitude the projected cost ripples with period c/(4f̄) (half
+    # the likelihood's ripple) as a − b·cos(2π·depth/period + φ), and at high SNR the grid's
+    # sampling error (up to half a spacing off the minimum) outweighs the cost difference
+    # between adjacent ripples — the wrong ripple would win (measured on a 5.1–5.7 GHz sweep)
+    spacing = float(grid_mm[1] - grid_mm[0]) if grid_points > 1 else 1.0
+    mean_f = model.start_hz + 0.5 * model.step_hz * (n - 1)
+    theta = min(max(2 * math.pi * 1e-3 * spacing / (C / (4 * mean_f)), 1e-3), 3.0)  # grid step in cost phase
+    interior = jnp.isfinite(left) & jnp.isfinite(right)
+    l_, r_ = jnp.where(interior, left, costs), jnp.where(interior, right, costs)
+    b_cos = (l_ + r_ - 2 * costs) / (2 * (1 - math.cos(theta)))
+    b_sin = (r_ - l_) / (2 * math.sin(theta))
+    amplitude = jnp.hypot(b_cos, b_sin)
+    vertex = jnp.where(local_min, costs + b_cos - amplitude, jnp.inf)
+    order = jnp.argmin(vertex)[None] if candidates == 1 else jax.lax.top_k(-vertex, candidates)[1]
+    shift = jnp.where(amplitude[order] > 0, -jnp.arctan2(b_sin[order], b_cos[order]) / theta, 0.0)  # in spacings
+    starts = jnp.asarray(grid_mm)[order] + jnp.clip(shift, -1.0, 1.0) * spacing
+    # a polish must not end above its grid point's cost with every order modelled (`descended`)
+    if grid_max_order is None or grid_max_order >= model.weights.shape[0] - 1:
+        ceilings = costs[order]
+    else:
+        ceilings = jax.vmap(lambda r: pix.cost_at(model, r))(jax.tree.map(lambda v: v[order], grid_rotations))
+    # step tolerance from the closed-form phase-locked bound at the window's peak amplitude
+    # (a tone a·cos has unitary DFT peak a·√N/2 on a bin)
+    tone_amplitude = 2 * scale / math.sqrt(n)
+    sigma_pred_mm = 1e3 * phase_locked_sigma_m(model.sum_angular_frequency_sq(), tone_amplitude, noise_var)
+    tolerance_mm = jnp.maximum(STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA * sigma_pred_mm)
+    return eqx.tree_at(lambda f: (f.starts_mm, f.ceilings, f.tolerance_mm), pix, (starts, ceilings, tolerance_mm))
+
+
+def finish_pixel(
+    model: UniformModel,
+    pix: PixelFit,
+    coarse_depth_m,
+    noise_var,
+    offsets_mm: Float[Array, " C"],
+    solved: Bool[Array, " C"],
+    num_steps: Int[Array, " C"],
+) -> FitResult:
+    """The fit at the polished depth of each candidate, the best candidate, and its σ from
+    the Fisher information."""
+    data = pix.data
+
+    def final_fit(offset_mm):
+        """The fit at a depth: (c, A), cost, the weighted tone and its derivative in depth
+        (one JVP: the Jacobian's depth column)."""
+        tone, d_tone_per_mm = jax.jvp(
+            lambda x: pix.weighted_tone(model, model.rotation(1e-3 * x)), (offset_mm,), (jnp.ones_like(offset_mm),)
+        )
+        coef, res_re, res_im = data.project(*tone)
+        return coef, res_re @ res_re + res_im @ res_im, tone, jax.tree.map(lambda v: 1e3 * v, d_tone_per_mm)
+
+    coefs, finals, tones, d_tones = jax.vmap(final_fit)(offsets_mm)
+    oks = solved & descended(finals, pix.ceilings)
+    if offsets_mm.shape[0] > 1:
+        ranked = jnp.where(jnp.isfinite(finals), finals, jnp.inf)
+        # Where ripples are narrower than a bin, (A, τ) and (−A, τ + half a ripple) fit almost
+        # equally: the carrier alignment made A·w_0 > 0, so prefer a positive amplitude.
+        amps = coefs[:, 1]
+        best = jnp.argmin(jnp.where((amps >= 0) | jnp.all(amps < 0), ranked, jnp.inf))
+    else:  # one basin: no comparison
+        best = 0
+    pick = lambda tree: jax.tree.map(lambda leaf: leaf[best], tree)
+    offset_mm, ok, steps, coef, cost_final, tone, d_tone = pick(
+        (offsets_mm, oks, num_steps, coefs, finals, tones, d_tones)
+    )
+    depth = coarse_depth_m + 1e-3 * offset_mm
+    (t_re, t_im), (dt_re, dt_im) = tone, d_tone
+    # Fisher information of (depth, c, A): components of a unitary DFT of white noise of
+    # variance σ² carry σ²/2 each (the weights ω already account for DC/Nyquist bins).
+    # Jacobian columns (in units of the scaled data): depth A·∂tone/∂depth, offset dc, amplitude tone
+    amp = coef[1]
+    tone_sq = t_re @ t_re + t_im @ t_im
+    f_dd = amp**2 * (dt_re @ dt_re + dt_im @ dt_im)
+    f_dc, f_da = amp * (dt_re @ data.dc), amp * (dt_re @ t_re + dt_im @ t_im)
+    f_cc, f_ca, f_aa = data.dc @ data.dc, data.dc @ t_re, tone_sq
+    schur_scaled = depth_information(f_dd, f_da, f_aa, f_dc, f_cc, f_ca)
+    scale = pix.scale
+    sigma = sigma_from_information(schur_scaled * scale**2 / (0.5 * jnp.maximum(noise_var, 1e-30)))
+    data_sq = data.y_re @ data.y_re + data.y_im @ data.y_im
+    posed = well_posed(amp, tone_sq, data_sq, f_dd, schur_scaled)
+    return FitResult(
+        depth, coef[0] * scale, amp * scale, sigma, ok & jnp.isfinite(cost_final), steps, cost_final * scale**2, posed
+    )
+
+
+# The polish runs every pixel of a batch for at most this many Newton steps, then only the
+# pixels still going, a few at a time (`STRAGGLER_GROUP`): a vmapped loop runs as long as its
+# slowest pixel. Measured on the 35-frame 10 Hz mode (81 920 px): 98.8 % of the pixels
+# converge in 2–3 steps and 57 need 4–9, one of those in most 2048-px batches.
+FIRST_PASS_STEPS = 3
+STRAGGLER_GROUP = 32
+
+
+def refine_ml_uniform(
+    model: UniformModel,
+    windows,
+    k0,
+    coarse_depth_m,
+    noise_var,
+    *,
+    grid_half_width_m: float,
+    grid_points: int,
+    max_steps: int = 16,
+    candidates: int = 1,
+    grid_max_order: int | None = None,
+    first_pass_steps: int | None = None,
+) -> FitResult:
+    """ML depth of a batch of pixels (the leading axis of every array argument) from their DFT
+    windows (unitary bins k0..k0+W−1): `prepare_pixel`, the polish, `finish_pixel`.
+
+    The polish (`polish_depth`, up to `max_steps` Newton steps a pixel) runs in two passes:
+    every pixel and candidate for `first_pass_steps` (default `FIRST_PASS_STEPS`), then those
+    that hit that limit resume where they stopped, `STRAGGLER_GROUP` at a time, for the
+    remaining steps. A pixel's result depends on its own data only, never on its batch. The
+    straggler pass is a `lax.while_loop`, which reverse-mode differentiation cannot pass through."""
+    prep = lambda w, k, d, v: prepare_pixel(
+        model,
+        w,
+        k,
+        d,
+        v,
+        grid_half_width_m=grid_half_width_m,
+        grid_points=grid_points,
+        candidates=candidates,
+        grid_max_order=grid_max_order,
+    )
+    pix = jax.vmap(prep)(windows, k0, coarse_depth_m, noise_var)
+    num_pixels = windows.shape[0]
+    # one polish per (pixel, candidate), flattened
+    owner = jnp.repeat(jnp.arange(num_pixels), candidates)
+    starts = pix.starts_mm.reshape(-1)
+
+    def polish(index, start, steps):
+        one = jax.tree.map(lambda leaf: leaf[index], pix)
+        return polish_depth(
+            one.cost(model), start, max_steps=steps, tolerance_mm=one.tolerance_mm, report_step_limit=True
+        )
+
+    first = min(FIRST_PASS_STEPS if first_pass_steps is None else first_pass_steps, max_steps)
+    values, solved, num_steps, at_limit = jax.vmap(lambda i, x: polish(i, x, first))(owner, starts)
+    if max_steps > first:
+        total = starts.shape[0]
+        group = min(STRAGGLER_GROUP, total)
+
+        def resume(state):
+            values, solved, num_steps, pending = state
+            # `total` marks an empty slot: its polish runs on a clamped index, its writes are dropped
+            slots = jnp.nonzero(pending, size=group, fill_value=total)[0]
+            idx = jnp.minimum(slots, total - 1)
+            v, ok, steps, _ = jax.vmap(lambda i, x: polish(i, x, max_steps - first))(owner[idx], values[idx])
+            put = lambda arr, new: arr.at[slots].set(new, mode="drop")
+            return (
+                put(values, v),
+                put(solved, ok),
+                put(num_steps, num_steps[idx] + steps),
+                pending.at[slots].set(False, mode="drop"),
+            )
+
+        values, solved, num_steps, _ = jax.lax.while_loop(
+            lambda state: jnp.any(state[3]), resume, (values, solved, num_steps, at_limit)
+        )
+    shape = (num_pixels, candidates)
+    fin = lambda p, d, v, x, ok, steps: finish_pixel(model, p, d, v, x, ok, steps)
+    return jax.vmap(fin)(
+        pix, coarse_depth_m, noise_var, values.reshape(shape), solved.reshape(shape), num_steps.reshape(shape)
+    )
+
+
+# The basin grid leaves out sideband orders whose weight is below this fraction of the
+# dominant tone's: a tone of relative amplitude ε left unmodelled adds ε²·(signal energy) to
+# every grid cost alike (1e-4 of it at ε = 1 %), far below both the noise near the SNR
+# threshold and the differences between ripples at high SNR; the polish models every order.
+GRID_MIN_RELATIVE_WEIGHT = 1e-2
+
+
+def grid_orders(weights) -> int:
+    """The highest sideband order the basin grid models (`GRID_MIN_RELATIVE_WEIGHT`)."""
+    w = np.abs(np.asarray(weights, np.float64))[1:]
+    keep = np.nonzero(w >= GRID_MIN_RELATIVE_WEIGHT * w.max())[0]
+    return int(keep.max() + 1)
+
+
+def grid_for(
+    sweep_bin_depth_m: float,
+    ripple_m: float,
+    half_width_bins: float = 1.0,
+    points_per_ripple: int = 6,
+    max_points: int = 257,
+) -> tuple[float, int, int]:
+    """Basin search: half-width (m), odd number of grid points, and how many of the grid's
+    best local minima to polish (3 where the ripple is narrower than a bin, else 1)."""
+    half = half_width_bins * sweep_bin_depth_m
+    # the grid must resolve the likelihood's ripple; where the ripple is wider than a bin
+    # (0.1–6 GHz: 49 mm vs 25 mm) a quarter-bin spacing already lands in the right basin
+    spacing = min(sweep_bin_depth_m / 4, ripple_m / points_per_ripple)
+    points = int(min(max_points, 2 * math.ceil(half / spacing) + 1))
+    return half, points, (3 if ripple_m < sweep_bin_depth_m else 1)
+
+
+# The straggler pass pays off for short sweeps, whose large batches hold a few pixels that need
+# 2–3× the steps of the rest; at long sweeps it measured neutral and costs a second compiled
+# polish (docs/performance.md), so they polish in one pass.
+TWO_PASS_MAX_FRAMES = 512
+
+
+class WindowML(AbstractDepthEstimator):
+    """Phase-locked maximum likelihood on the W DFT bins around each pixel's peak (uniform
+    sweeps): a basin grid over ±1 bin of the coarse depth, Newton's polish, σ from the Fisher
+    information at the fit (`refine_ml_uniform`)."""
+
+    refines: ClassVar[bool] = True
+
+    @property
+    def description(self) -> str:
+        return "ML on the DFT window (Dirichlet kernels)"
+
+    model: UniformModel
+    window_bins: int = eqx.field(static=True)
+    grid_half_width_m: float = eqx.field(static=True)
+    grid_points: int = eqx.field(static=True)
+    candidates: int = eqx.field(static=True)
+    grid_max_order: int = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+    first_pass_steps: int = eqx.field(static=True)
+
+    @classmethod
+    def build(cls, setup: EstimatorSetup) -> WindowML:
+        g = setup.geometry
+        half, points, candidates = grid_for(g.bin_depth_m, g.ripple_m)
+        first_pass = FIRST_PASS_STEPS if g.num_frames < TWO_PASS_MAX_FRAMES else setup.max_steps
+        return cls(
+            setup.model,
+            setup.window_bins,
+            half,
+            points,
+            candidates,
+            grid_orders(setup.model.weights),
+            setup.max_steps,
+            first_pass,
+        )
+
+    def estimate(self, stage, coarse, sequence, noise_var) -> DepthEstimate:
+        spec = coarse.spectrum
+        coarse_depth = stage.depth(coarse, interpolate=True)
+        k_count = spec.shape[-1]
+        w = min(self.window_bins, k_count)
+        k0 = jnp.clip(coarse.peak - w // 2, 0, k_count - w)
+        windows = jnp.take_along_axis(spec, k0[:, None] + jnp.arange(w), axis=-1).astype(jnp.complex128)
+        fit = refine_ml_uniform(
+            self.model,
+            windows,
+            k0,
+            coarse_depth,
+            noise_var,
+            grid_half_width_m=self.grid_half_width_m,
+            grid_points=self.grid_points,
+            max_steps=self.max_steps,
+            candidates=self.candidates,
+            grid_max_order=self.grid_max_order,
+            first_pass_steps=self.first_pass_steps,
+        )
+        # reduced χ² of the window fit: each unitary bin holds noise of variance σ²/2 per
+        # component; 2W real residuals less the three fitted unknowns (noise floored at 1e-9 of
+        # the window's mean power: noiseless data have rounding-level residuals and a zero noise
+        # estimate, which is not a misfit)
+        floor = 1e-9 * jnp.mean(jnp.abs(windows) ** 2, axis=-1)
+        chi2 = fit.cost / (0.5 * jnp.maximum(noise_var, jnp.maximum(floor, 1e-30)) * (2 * w - 3))
+        return DepthEstimate(
+            fit.depth_m,
+            jnp.abs(fit.amplitude),
+            fit.sigma_depth_m,
+            coarse_depth,
+            fit.converged,
+            fit.finite_and_well_posed(),
+            chi2,
+        )

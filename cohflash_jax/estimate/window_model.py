@@ -1,0 +1,191 @@
+"""The phase-locked tone of a uniform sweep over a window of DFT bins, in closed form.
+
+Model of the carrier-aligned sequence: r[m] = c + A·Σ_{n≥1} 2 w_n cos(2π n f_m τ) + noise,
+where w_n are the sideband weights and c absorbs A·w_0 and any offset. For a uniform sweep
+f_m = f_0 + mΔf, the unitary DFT of each tone is a Dirichlet kernel in closed form, so a fit
+can use only the W ≈ 17 bins around the peak (white noise stays white), with the harmonics'
+kernels — aliases included, as the kernel is periodic — wherever they fall in the window.
+The model is linear in (c, A), which are projected out (variable projection).
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Complex, Float, Int
+
+from ..constants import SPEED_OF_LIGHT_M_PER_S as C
+from ..fisher import sum_angular_frequency_sq_uniform
+
+# three unit phasors (cos, sin) of a tone at a depth: e^{ia}, e^{iθ}, e^{iNa} (`UniformModel.phasors`)
+Phasors = tuple
+
+
+def cmul(p, q):
+    """Product of complex numbers held as (re, im) pairs."""
+    return p[0] * q[0] - p[1] * q[1], p[0] * q[1] + p[1] * q[0]
+
+
+def shift_phasors(phasors: Phasors, rotation: Phasors) -> Phasors:
+    return tuple(cmul(p, r) for p, r in zip(phasors, rotation))
+
+
+class WindowTables(eqx.Module):
+    """Per-pixel constants of the DFT bins k0..k0+W−1: cos and sin of b_k = πk/N, and k."""
+
+    cos_b: Float[Array, " W"]
+    sin_b: Float[Array, " W"]
+    bins: Float[Array, " W"]
+
+
+def window_tables(k0: Int[Array, ""], width: int, n: int) -> WindowTables:
+    """b_k = πk/N by angle addition from b_{k0}: two float64 cos/sin a pixel, not 2W."""
+    step = np.pi * np.arange(width) / n
+    k0 = jnp.asarray(k0)
+    b0 = jnp.pi * k0.astype(jnp.float64) / n
+    c0, s0 = jnp.cos(b0), jnp.sin(b0)
+    k = (k0 + jnp.arange(width)).astype(jnp.float64)
+    return WindowTables(c0 * np.cos(step) - s0 * np.sin(step), s0 * np.cos(step) + c0 * np.sin(step), k)
+
+
+def dirichlet_window(x0: Float[Array, ""], tables: WindowTables, n: int) -> Complex[Array, " W"]:
+    """Unitary DFT D(x0 − k/N) = (1/√N) Σ_m e^{i2π(x0 − k/N)m} at the window's bins k.
+
+    Closed form e^{iπ(N−1)(x0 − k/N)}·sin(πN(x0 − k/N))/sin(π(x0 − k/N))/√N; the bin's share
+    of the phase, e^{−iπ(N−1)k/N}, times the (−1)^k of sin(πN x0 − πk) is exactly e^{iπk/N}
+    (no large argument to reduce). At integer x (a tone exactly on a bin) the value is √N;
+    that branch is selected without a 0/0 so gradients stay finite."""
+    a = jnp.pi * x0
+    num = jnp.sin(n * a)
+    den = jnp.sin(a) * tables.cos_b - jnp.cos(a) * tables.sin_b  # sin(π(x0 − k/N))
+    on_bin = jnp.abs(den) < 1e-9
+    safe = jnp.where(on_bin, 1.0, den)
+    pre = jnp.exp(1j * (n - 1) * a) / math.sqrt(n)
+    general = pre * (tables.cos_b + 1j * tables.sin_b) * (num / safe)
+    return jnp.where(on_bin, math.sqrt(n) + 0j, general)
+
+
+class UniformModel(eqx.Module):
+    """What the ML fit needs to know of a uniform sweep and the modulator (float64)."""
+
+    start_hz: float
+    step_hz: float
+    weights: Float[Array, " K"]  # sideband weights w_0..w_nmax
+    system_delay_s: float = 0.0
+    num_frames: int = eqx.field(static=True, default=0)
+
+    def sum_angular_frequency_sq(self) -> float:
+        """Σ_m (2π f_m)² over the sweep (rad²/s²), the sum in the phase-locked Fisher information."""
+        return sum_angular_frequency_sq_uniform(self.num_frames, self.start_hz, self.step_hz)
+
+    def delay(self, depth_m):
+        return self.system_delay_s + 2.0 * depth_m / C
+
+    def phasors(self, depth_m) -> Phasors:
+        """The first-order phasors at a depth: e^{ia} (a = πΔfτ), e^{iθ} (θ = 2πf₀τ) and
+        e^{iNa}, their angles reduced modulo 2π in float64 before the cos/sin."""
+        tau = self.delay(depth_m)
+        turn = lambda cycles: 2 * jnp.pi * (cycles - jnp.floor(cycles))
+        angles = (
+            turn(0.5 * self.step_hz * tau),
+            turn(self.start_hz * tau),
+            turn(0.5 * self.num_frames * self.step_hz * tau),
+        )
+        return tuple((jnp.cos(v), jnp.sin(v)) for v in angles)
+
+    def rotation(self, delta_m, xp=jnp) -> Phasors:
+        """The factors that move `phasors` by `delta_m` of depth: e^{iκδ} for each angle's rate
+        κ (rad/m). With xp=np and a fixed δ (the basin grid) they are constants of the
+        compiled program."""
+        rate_a = 2 * math.pi * self.step_hz / C
+        rates = (rate_a, 4 * math.pi * self.start_hz / C, self.num_frames * rate_a)
+        return tuple((xp.cos(k * delta_m), xp.sin(k * delta_m)) for k in rates)
+
+    def tone_from_phasors(self, phasors: Phasors, tables: WindowTables, max_order: int | None = None):
+        """Real and imaginary parts (each (W,)) of the DFT over the window of
+        Σ_{n≥1} 2 w_n cos(2π n f_m τ) (unit amplitude A), from the depth's `phasors`.
+
+        Each order's cosine is e^{iθ}·D(x) + e^{−iθ}·D(−x) (θ = 2π n f_0 τ, x = n Δf τ), with D
+        the `dirichlet_window` kernel. The two kernels share their numerator and per-bin phase,
+        so the pair is u·e^{ib_k}·(1/sin(πx − b_k) + ū/u·1/sin(πx + b_k)) with u = e^{iθ}·
+        e^{iπ(N−1)x}·sin(πNx)/√N, and e^{ib_k} is applied once after the sum over orders.
+        Bins where a kernel sits exactly on the tone take their limit √N·e^{±iθ}.
+
+        Order n's phasors are the first order's to the n-th power, and everything is real
+        arithmetic: XLA's CPU float64 sin/cos cost more than the rest of a 17-bin window
+        together (docs/performance.md)."""
+        n = self.num_frames
+        top = self.weights.shape[0] - 1 if max_order is None else min(max_order, self.weights.shape[0] - 1)
+        e_a, e_theta, e_na = phasors
+        e_phase = cmul(cmul(e_theta, e_na), (e_a[0], -e_a[1]))  # e^{i(θ + (N−1)a)}
+        pow_a, pow_theta, pow_na, pow_phase = e_a, e_theta, e_na, e_phase
+        acc_re = acc_im = on_re = on_im = 0.0
+        for order in range(1, top + 1):
+            if order > 1:
+                pow_a, pow_theta = cmul(pow_a, e_a), cmul(pow_theta, e_theta)
+                pow_na, pow_phase = cmul(pow_na, e_na), cmul(pow_phase, e_phase)
+            weight = self.weights[order]
+            w_num = weight * pow_na[1] / math.sqrt(n)  # w_n sin(πNx)/√N
+            u_re, u_im = w_num * pow_phase[0], w_num * pow_phase[1]
+            p, q = pow_a[1] * tables.cos_b, pow_a[0] * tables.sin_b
+            den_pos, den_neg = p - q, p + q  # sin(πx − b_k), sin(πx + b_k)
+            on_pos, on_neg = jnp.abs(den_pos) < 1e-9, jnp.abs(den_neg) < 1e-9
+            g_pos = jnp.where(on_pos, 0.0, 1 / jnp.where(on_pos, 1.0, den_pos))
+            g_neg = jnp.where(on_neg, 0.0, 1 / jnp.where(on_neg, 1.0, den_neg))
+            acc_re = acc_re + u_re * (g_pos + g_neg)
+            acc_im = acc_im + u_im * (g_pos - g_neg)
+            on_amp = weight * math.sqrt(n)
+            rot_re, rot_im = on_amp * pow_theta[0], on_amp * pow_theta[1]
+            on_re = on_re + jnp.where(on_pos | on_neg, rot_re, 0.0)
+            on_im = on_im + jnp.where(on_pos, rot_im, 0.0) - jnp.where(on_neg, rot_im, 0.0)
+        c, s = tables.cos_b, tables.sin_b
+        return c * acc_re - s * acc_im + on_re, s * acc_re + c * acc_im + on_im
+
+    def tone_column(self, depth_m, tables: WindowTables, max_order: int | None = None) -> Complex[Array, " W"]:
+        """`tone_from_phasors` at a depth, as one complex array."""
+        re, im = self.tone_from_phasors(self.phasors(depth_m), tables, max_order)
+        return re + 1j * im
+
+    def dc_column(self, tables: WindowTables) -> Float[Array, " W"]:
+        """DFT of the constant 1 over the window: √N at bin 0, zero elsewhere (real)."""
+        return jnp.where(tables.bins == 0, math.sqrt(self.num_frames), 0.0)
+
+
+def bin_weights(tables: WindowTables, n: int) -> Float[Array, " W"]:
+    """Residual weights: the DC and Nyquist bins of a real sequence are real with twice the
+    variance per component, so they get 1/√2."""
+    edge = (tables.bins == 0) | (tables.bins == n / 2)
+    return jnp.where(edge, 1 / math.sqrt(2), 1.0)
+
+
+def solve_normal_2x2(g00, g01, g11, r0, r1):
+    """(c, A) from the 2×2 normal equations [[g00, g01], [g01, g11]]·(c, A) = (r0, r1), ridged so
+    a vanishing column gives a zero coefficient, not NaN."""
+    ridge = 1e-12 * (g00 + g11) + 1e-300
+    g00, g11 = g00 + ridge, g11 + ridge
+    det = g00 * g11 - g01 * g01
+    return jnp.stack([(g11 * r0 - g01 * r1) / det, (g00 * r1 - g01 * r0) / det])
+
+
+class WindowData(eqx.Module):
+    """One pixel's window weighted by the bin weights ω: data y (Re, Im parts) and the DC
+    column (real); all (W,). The tone column enters as (Re, Im) parts weighted alike."""
+
+    y_re: Float[Array, " W"]
+    y_im: Float[Array, " W"]
+    dc: Float[Array, " W"]
+
+    def project(self, tone_re, tone_im):
+        """Least-squares (c, A) on [dc, tone] (both ω-weighted) and the residual parts."""
+        dc = self.dc
+        coef = solve_normal_2x2(
+            dc @ dc,
+            dc @ tone_re,
+            tone_re @ tone_re + tone_im @ tone_im,
+            dc @ self.y_re,
+            tone_re @ self.y_re + tone_im @ self.y_im,
+        )
+        return coef, self.y_re - dc * coef[0] - tone_re * coef[1], self.y_im - tone_im * coef[1]

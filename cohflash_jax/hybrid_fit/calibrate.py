@@ -1,0 +1,290 @@
+"""The whole calibration: pick the strongest pixels of a survey, alternate the hybrid and the
+common carrier drift, fit the modulator, then τ_sys against a known distance → a
+`cohflash-calibration` document."""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..capture import Capture, CaptureError
+from ..constants import SPEED_OF_LIGHT_M_PER_S as C
+from ..estimate.iq import align_carrier_static, derotate, iq_from_frames, moving_average
+from ..hybrid import Hybrid
+from ..status import Status
+from .common import MIN_FRAMES, MIN_PIXELS, Estimate, tone_sequences
+from .hybrid_stage import common_carrier, fit_hybrid, fit_offsets, pixel_statistics
+from .modulator_stage import fit_modulator
+
+
+def initial_common_drift(i, q, window_frames: int = 101) -> tuple[np.ndarray, str]:
+    """First estimate of a carrier drift common to the pixels, without knowing their depths.
+
+    The moving average of Z = I + iQ keeps the mean term z_p·w_0·e^{iφ[m]} (the tone averages
+    out); minus its time mean, it is (nearly) rank one over pixels, so its leading left singular
+    vector is κ·(e^{iφ[m]} − c): a circle, fitted algebraically (Kåsa) to recover φ. Leakage of
+    common mode through an uncalibrated hybrid is constant and drops out with the mean.
+    Returns (φ (N,) zero-mean, description); φ = 0 when the data show no drift."""
+    z = np.asarray(i) + 1j * np.asarray(q)
+    n, p = z.shape
+    half = window_frames // 2
+    if n <= 4 * window_frames:
+        return np.zeros(n), "too few frames to look for a carrier drift"
+    average = np.asarray(moving_average(jnp.asarray(z), window_frames))
+    # a pure-noise N×P matrix of entry variance v has a top singular value ≈ √v(√N + √P); the
+    # high-passed variance (tone included) over the window bounds v from above
+    noise_var = np.mean(np.abs(z - average) ** 2) / window_frames
+    m = average[half : n - half]  # the shrinking windows at the ends let the tone through
+    m = m - m.mean(axis=0)
+    u, sv, _ = np.linalg.svd(m, full_matrices=False)
+    floor = math.sqrt(noise_var) * (math.sqrt(m.shape[0]) + math.sqrt(p))
+    if sv.size < 2 or not (sv[0] > 3 * floor and sv[0] > 3 * sv[1]):
+        return np.zeros(n), "no common carrier drift detected"
+    lead = u[:, 0]
+    x, y = lead.real, lead.imag
+    design = np.stack([2 * x, 2 * y, np.ones_like(x)], 1)
+    (cx, cy, k), *_ = np.linalg.lstsq(design, x * x + y * y, rcond=None)
+    centre = cx + 1j * cy
+    radius = math.sqrt(max(k + abs(centre) ** 2, 0.0))
+    spread = np.std(np.abs(lead - centre) - radius) / max(radius, 1e-300)
+    if not (radius > 0 and spread < 0.3):
+        return np.zeros(z.shape[0]), f"carrier drift not resolved (circle fit spread {spread:.2f}): treated as static"
+    phi = np.unwrap(np.angle(lead - centre))
+    phi = np.concatenate([np.full(half, phi[0]), phi, np.full(n - half - phi.size, phi[-1])])
+    return phi - phi.mean(), f"common carrier drift found (rms {np.std(phi):.2f} rad)"
+
+
+# Survey statuses of pixels a calibration may use. dc_edge pixels are usable: through an
+# uncalibrated hybrid the untracked turbulent carrier makes the survey's mean term wander near
+# DC, which the calibration's drift model removes.
+USABLE_SURVEY_STATUS = (Status.OK, Status.DC_EDGE)
+
+
+def _select_pixels(capture: Capture, max_pixels: int, snr_map: np.ndarray, status_map: np.ndarray):
+    ok = np.isin(status_map, USABLE_SURVEY_STATUS) & np.isfinite(snr_map)
+    if int(ok.sum()) < MIN_PIXELS:
+        counts = ", ".join(f"{Status(int(c)).message} {int((status_map == c).sum())}" for c in np.unique(status_map))
+        raise CaptureError(
+            f"{capture.path}: only {int(ok.sum())} pixels are usable for calibration (need ≥ "
+            f"{MIN_PIXELS}); survey statuses: {counts}"
+        )
+    idx = np.flatnonzero(ok.ravel())
+    idx = idx[np.argsort(-snr_map.ravel()[idx])][:max_pixels]
+    return np.sort(idx)
+
+
+def _gather(capture: Capture, flat_idx: np.ndarray) -> np.ndarray:
+    """Frames (4, N, P) float64 of the chosen pixels, read row by row."""
+    n, h, w = capture.shape
+    rows, cols = np.divmod(flat_idx, w)
+    out = np.empty((4, n, flat_idx.size), np.float64)
+    for r in np.unique(rows):
+        sel = rows == r
+        tile = capture.read_tile(slice(int(r), int(r) + 1))[:, :, 0, :]
+        out[:, :, sel] = tile[:, :, cols[sel]]
+    return out
+
+
+def read_mean_frame(path) -> np.ndarray:
+    """Mean frame (4, H, W) of a dark or flat capture (its `dark` dataset if frames are absent)."""
+    with Capture(path) as cap:
+        n, h, w = cap.shape
+        total = np.zeros((4, h, w), np.float64)
+        for m0 in range(0, n, 256):
+            block = cap.frames[:, m0 : m0 + 256].astype(np.float64)
+            if not np.all(np.isfinite(block)):
+                raise CaptureError(f"{path}: frames contain NaN or inf")
+            total += block.sum(axis=1)
+        return total / n
+
+
+def calibrate_hybrid(
+    capture_path,
+    *,
+    dark_path=None,
+    flat_path=None,
+    known_distance_m: float | None = None,
+    max_pixels: int = 1024,
+    modulator_pixels: int = 48,
+    iterations: int = 2,
+    inner_iterations: int = 3,
+    min_depth_m: float = 1.0,
+    progress: bool = True,
+) -> dict:
+    """The whole calibration → a `cohflash-calibration` document (dict) plus per-pixel maps.
+
+    Returns {"document": JSON-able dict, "maps": {name: array} (may be empty)}."""
+    from ..reconstruct import ReconstructOptions, reconstruct_array, reconstruct_capture
+
+    if known_distance_m is not None and not (math.isfinite(known_distance_m) and known_distance_m > 0):
+        raise ValueError(f"known distance must be a positive number of metres, got {known_distance_m}")
+    if max_pixels < 1 or modulator_pixels < 1:
+        raise ValueError(f"max_pixels and modulator_pixels must be ≥ 1, got {max_pixels} and {modulator_pixels}")
+    with Capture(capture_path) as cap:
+        n, h, w = cap.shape
+        if n < MIN_FRAMES:
+            raise CaptureError(
+                f"{capture_path}: {n} frames are too few to calibrate (need ≥ {MIN_FRAMES}: the tone's "
+                "harmonics and the roll-off need a resolved spectrum)"
+            )
+        instrument = cap.instrument()
+        freqs = cap.frequencies_hz
+        nominal = np.asarray(cap.hybrid_phases_rad, np.float64)
+        modulator = instrument.modulator
+        dark = read_mean_frame(dark_path) if dark_path is not None else None
+        if dark is not None and dark.shape != (4, h, w):
+            raise CaptureError(f"{dark_path}: dark frame has shape {dark.shape}, the capture needs (4, {h}, {w})")
+        options = ReconstructOptions(method="interp", progress=progress)
+        survey = reconstruct_capture(cap, options, instrument).outputs
+        idx = _select_pixels(cap, max_pixels, survey["snr"], survey["fit_status"])
+        frames = _gather(cap, idx)
+    p = idx.size
+    hybrid = Hybrid(tuple(nominal))
+    # remove each port's mean: common mode leaking through the uncalibrated hybrid is constant,
+    # but once the carrier drift is derotated it would wander near DC and swamp the tone
+    port_means = frames.mean(axis=1)  # (4, P) DN, for the offsets
+    frames = frames - port_means[:, None]
+    data = jnp.asarray(frames)
+    iq_w, iq_b = hybrid.iq_matrix_dn(1.0)
+    drift, drift_note = initial_common_drift(*iq_from_frames(data, iq_w, iq_b))
+    drifting = bool(np.any(drift != 0))  # without a drift u ≡ 1: fitting it would only fit noise
+    u = jnp.asarray(np.exp(1j * drift))
+    params = None
+    ml = ReconstructOptions(method="ml", progress=False, dtype="float64", min_depth_m=min_depth_m)
+
+    def reconstruct_selected(hyb, mod, carrier):
+        hyb = Hybrid(hyb.phases_rad, hyb.relative_gains, (0.0,) * 4)  # the frames are centred
+        out = reconstruct_array(
+            frames.reshape(4, n, 1, p), instrument.replace(hybrid=hyb, modulator=mod), ml, carrier_phase_rad=carrier
+        )
+        return out["depth_m"][0], out["fit_status"][0]
+
+    for _ in range(iterations):
+        depth, status = reconstruct_selected(hybrid, modulator, drift)
+        good = np.flatnonzero(status == Status.OK)
+        if good.size < MIN_PIXELS:
+            raise CaptureError(
+                f"{capture_path}: only {good.size} of {p} pixels reconstruct validly: too little signal to calibrate"
+            )
+        tone = tone_sequences(freqs, 2 * depth / C, modulator)
+        sub, tone_g = data[:, :, good], tone[:, good]
+        for _ in range(inner_iterations):  # alternate: hybrid given the drift, drift given the hybrid
+            stats = pixel_statistics(sub, tone_g * u[:, None])
+            fit = fit_hybrid(stats, nominal, params)
+            params = fit.params
+            hybrid_h = jnp.asarray(0.5 * fit.relative_gains * np.exp(1j * fit.phases_rad))
+            if drifting:
+                u = common_carrier(sub, hybrid_h, jnp.asarray(fit.amplitudes), tone_g, stats["noise_var"])
+        if drifting:
+            drift = np.unwrap(np.angle(np.asarray(u)))
+            drift = drift - np.mean(drift)
+        # stage 2 on the strongest pixels, with the current hybrid and drift. The time-domain
+        # fit needs the uncentred I/Q (a mean removed before derotation would wander after it,
+        # and pass for a roll-off); a calibrated hybrid cancels the common mode, so no leakage.
+        if fit.identified:
+            offsets = fit_offsets(port_means[:, good], stats, fit, None)[0]
+            hybrid = Hybrid(tuple(fit.phases_rad), tuple(fit.relative_gains), tuple(offsets))
+            source = data + jnp.asarray(port_means)[:, None]
+        else:
+            source = data
+        iq_w, iq_b = hybrid.iq_matrix_dn(1.0)
+        i, q = iq_from_frames(source, iq_w, iq_b)
+        i, q = derotate(i, q, jnp.asarray(drift)[:, None])
+        r, noise_var, _ = align_carrier_static(i, q)
+        amp = np.zeros(p)
+        amp[good] = np.abs(fit.amplitudes)
+        strongest = good[np.argsort(-amp[good])][:modulator_pixels]
+        mod_fit = fit_modulator(
+            freqs, np.asarray(r)[:, strongest], np.asarray(noise_var)[strongest], 2 * depth[strongest] / C, modulator
+        )
+        modulator = mod_fit.modulator
+    offsets, offset_sigma, offset_note = fit_offsets(port_means[:, good], stats, fit, dark)
+    if fit.identified:
+        hybrid = Hybrid(tuple(fit.phases_rad), tuple(fit.relative_gains), tuple(offsets))
+    depth, status = reconstruct_selected(hybrid, modulator, drift)
+    ok = status == Status.OK
+    if known_distance_m is None:
+        delay_est = Estimate(
+            None,
+            None,
+            "not identifiable without --known-distance-m (τ_sys and the target "
+            "distance enter the data only as their sum)",
+        )
+    elif ok.sum() < MIN_PIXELS:
+        delay_est = Estimate(None, None, f"only {int(ok.sum())} pixels reconstructed validly")
+    else:
+        d = depth[ok]
+        delay_est = Estimate(
+            float(2 * (np.mean(d) - known_distance_m) / C), float(2 * np.std(d, ddof=1) / math.sqrt(d.size) / C)
+        )
+    maps = {}
+    if dark is not None:
+        maps["offset_map_dn"] = dark.astype(np.float32)
+    if flat_path is not None:
+        if dark is None:
+            raise ValueError("--flat needs --dark: the flat field is measured above the dark level")
+        flat = read_mean_frame(flat_path)
+        if flat.shape != (4, h, w):
+            raise CaptureError(f"{flat_path}: flat frame has shape {flat.shape}, the capture needs (4, {h}, {w})")
+        above = flat - dark
+        if np.any(above[0] <= 0):
+            raise CaptureError(
+                f"{flat_path}: the flat field is not above the dark level on CCD 1 "
+                f"({int((above[0] <= 0).sum())} pixels)"
+            )
+        maps["gain_map"] = (above / (above[:1] * fit.relative_gains[:, None, None])).astype(np.float32)
+    hyb_note = fit.note
+    doc = {
+        "format": "cohflash-calibration",
+        "format_version": 1,
+        "gauge": "CCD 1: phase error 0, gain 1" + ("; offsets: " + offset_note),
+        "hybrid": {
+            "phases_rad": fit.phases_rad.tolist() if fit.identified else None,
+            "phases_sigma_rad": fit.phase_sigma_rad.tolist() if fit.identified else None,
+            "relative_gains": fit.relative_gains.tolist() if fit.identified else None,
+            "relative_gains_sigma": fit.gain_sigma.tolist() if fit.identified else None,
+            "offsets_dn": offsets.tolist() if fit.identified else None,
+            "offsets_sigma_dn": offset_sigma.tolist() if fit.identified else None,
+            **({"note": hyb_note} if hyb_note else {}),
+        },
+        "modulator": {
+            "modulation_index": mod_fit.modulation_index.as_dict(),
+            "rolloff_3db_hz": mod_fit.rolloff_3db_hz.as_dict(),
+            "bias_rad": mod_fit.bias_rad.as_dict(),
+            "max_order": int(modulator.max_order),
+            "sideband_weights": {
+                name: np.asarray(modulator.weights(fq)).tolist()
+                for name, fq in (("start", freqs[0]), ("centre", np.mean(freqs)), ("end", freqs[-1]))
+            },
+        },
+        "system_delay_s": delay_est.as_dict(),
+        "fit": {
+            "pixels": int(p),
+            "frames": int(n),
+            "modulator_pixels": mod_fit.pixels,
+            "hybrid_chi2_per_dof": fit.chi2_per_dof,
+            "modulator_chi2_per_dof": mod_fit.chi2_per_dof,
+            "carrier_drift_rms_rad": float(np.std(drift)),
+            "carrier_drift": drift_note,
+            "known_distance_m": known_distance_m,
+            "depth_spread_m": float(np.std(depth[ok])) if ok.any() else None,
+        },
+        "maps": sorted(maps),
+    }
+    strongest = int(good[np.argmax(np.abs(fit.amplitudes))]) if fit.amplitudes.size else 0
+    calibrated = Hybrid(hybrid.phases_rad, hybrid.relative_gains, (0.0,) * 4)
+    views = {}
+    for name, hyb in (("nominal", Hybrid(tuple(nominal))), ("calibrated", calibrated)):
+        w_iq, b_iq = hyb.iq_matrix_dn(1.0)
+        i, q = iq_from_frames(data[:, :, strongest : strongest + 1], w_iq, b_iq)
+        views[name] = np.asarray(i[:, 0]) + 1j * np.asarray(q[:, 0])
+    diagnostics = {
+        "frequencies_hz": np.asarray(freqs),
+        "drift_rad": np.asarray(drift),
+        "iq": views,
+        "modulator": modulator,
+        "pixel": divmod(int(idx[strongest]), w),
+    }
+    return {"document": doc, "maps": maps, "diagnostics": diagnostics}

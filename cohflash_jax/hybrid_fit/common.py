@@ -1,0 +1,62 @@
+"""What every calibration stage shares: a fitted value with its uncertainty (`Estimate`), the
+covariance of a least-squares fit, the model's tone, and the limits of identifiability."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ..modulator import MZM, beat_spectrum
+
+# A parameter is "not identified" when its 1σ exceeds these (the data then say nothing useful)
+PHASE_SIGMA_LIMIT_RAD = math.radians(3.0)
+GAIN_SIGMA_LIMIT = 0.05
+MIN_FRAMES = 64
+MIN_PIXELS = 8
+
+
+@dataclasses.dataclass
+class Estimate:
+    """A fitted value with its 1σ uncertainty, or `value=None` and the reason it is not identified."""
+
+    value: float | None
+    sigma: float | None = None
+    note: str | None = None
+
+    def as_dict(self):
+        return {"value": self.value, "sigma": self.sigma, **({"note": self.note} if self.note else {})}
+
+
+def tone_sequences(frequencies_hz, delay_s: Float[Array, " P"], modulator: MZM) -> Float[Array, "N P"]:
+    """S(2π f_m τ_p) with the modulator's (frequency-dependent) sideband weights, float64."""
+    f = jnp.asarray(frequencies_hz, jnp.float64)
+    w = modulator.weights(f)  # (N, K)
+    cycles = f[:, None] * jnp.asarray(delay_s, jnp.float64)[None, :]
+    psi = 2 * jnp.pi * (cycles - jnp.floor(cycles))
+    return beat_spectrum(psi, w[:, None, :])
+
+
+@eqx.filter_jit
+def residuals_and_jacobian(residual_fn, params, args):
+    return residual_fn(params, args), jax.jacfwd(residual_fn)(params, args)
+
+
+def covariance(residual_fn, params, args, dof):
+    """Covariance of least-squares parameters from the Jacobian at the optimum,
+    (JᵀJ)⁻¹·χ²/dof (residuals whitened by the measured noise), with χ², whether JᵀJ is
+    singular (an unidentifiable direction: its variances are then ∞) and the Jacobian."""
+    res, jac = residuals_and_jacobian(residual_fn, params, args)
+    chi2 = float(jnp.sum(res**2))
+    jtj = np.asarray(jac.T @ jac)
+    evals = np.linalg.eigvalsh(jtj)
+    singular = evals[0] <= 1e-12 * max(evals[-1], 1e-300)
+    cov = np.linalg.pinv(jtj) * max(chi2 / max(dof, 1), 1e-300)
+    if singular:
+        cov = cov + np.diag(np.where(np.diag(jtj) <= 0, np.inf, 0.0))
+    return cov, chi2, singular, np.asarray(jac)

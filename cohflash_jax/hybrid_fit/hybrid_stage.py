@@ -1,0 +1,228 @@
+"""Stage 1: per-CCD hybrid phase errors, gains and offsets (gauge CCD 1) from each pixel's
+sufficient statistics, and the carrier phase common to all pixels."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Float
+
+from .common import GAIN_SIGMA_LIMIT, PHASE_SIGMA_LIMIT_RAD, covariance
+
+
+@jax.jit
+def pixel_statistics(frames: Float[Array, "4 N P"], regressor) -> dict:
+    """Means, the Gram matrix of (Re s̃, Im s̃), cross products with the centred ports, and the
+    per-(CCD, pixel) noise variance left by an unconstrained regression (s̃ = s − mean s)."""
+    n = frames.shape[1]
+    mean_v = jnp.mean(frames, axis=1)  # (4, P)
+    v = frames - mean_v[:, None]
+    s_mean = jnp.mean(regressor, axis=0)  # (P,) complex
+    s = regressor - s_mean
+    basis = jnp.stack([jnp.real(s), jnp.imag(s)], axis=-1)  # (N, P, 2)
+    gram = jnp.einsum("npi,npj->pij", basis, basis)
+    cross = jnp.einsum("knp,npi->kpi", v, basis)  # (4, P, 2)
+    evals, evecs = jnp.linalg.eigh(gram)
+    keep = evals > 1e-9 * jnp.max(evals, axis=1, keepdims=True)
+    inv = jnp.where(keep, 1 / jnp.where(keep, evals, 1.0), 0.0)
+    proj = jnp.einsum("pij,kpi->kpj", evecs, cross)  # components along the eigenvectors
+    explained = jnp.sum(proj**2 * inv[None], axis=-1)
+    rank = jnp.sum(keep, axis=1)
+    rss = jnp.sum(v * v, axis=1) - explained
+    noise_var = jnp.maximum(rss, 1e-30) / (n - 1 - rank)[None, :]
+    return {
+        "mean_dn": mean_v,
+        "s_mean": s_mean,
+        "evals": evals,
+        "evecs": evecs,
+        "keep": keep,
+        "cross": cross,
+        "noise_var": noise_var,
+        "rank": rank,
+    }
+
+
+def _hybrid_matrices(nominal_rad, params):
+    theta = nominal_rad + jnp.concatenate([jnp.zeros(1), params[:3]])
+    gain = jnp.exp(jnp.concatenate([jnp.zeros(1), params[3:]]))
+    c, s = jnp.cos(theta), jnp.sin(theta)
+    # β_k = H_k @ (Re z, Im z): coefficients of (Re s, Im s) in port k
+    return 0.5 * gain[:, None, None] * jnp.stack([jnp.stack([c, -s], -1), jnp.stack([-s, -c], -1)], -2)
+
+
+def _hybrid_design(nominal_rad, params, stats):
+    """Whitened per-pixel design M_p (8×2) and data y_p (8,) of the projected problem."""
+    h = _hybrid_matrices(nominal_rad, params)  # (4, 2, 2)
+    keep = stats["keep"]
+    root = jnp.where(keep, jnp.sqrt(jnp.where(keep, stats["evals"], 1.0)), 0.0)  # (P, 2)
+    iroot = jnp.where(keep, 1 / jnp.where(keep, root, 1.0), 0.0)
+    vt = jnp.swapaxes(stats["evecs"], 1, 2)  # rows: eigenvectors
+    sigma = jnp.sqrt(stats["noise_var"])  # (4, P)
+    a = jnp.einsum("pij,kjl->kpil", vt, h) * root[None, :, :, None] / sigma[:, :, None, None]
+    y = jnp.einsum("pij,kpj->kpi", vt, stats["cross"]) * iroot[None] / sigma[:, :, None]
+    p = a.shape[1]
+    return jnp.transpose(a, (1, 0, 2, 3)).reshape(p, 8, 2), jnp.transpose(y, (1, 0, 2)).reshape(p, 8)
+
+
+def _solve_2x2(m, y):
+    mtm = jnp.einsum("pai,paj->pij", m, m)
+    mtm = mtm + (1e-12 * jnp.trace(mtm, axis1=1, axis2=2) + 1e-300)[:, None, None] * jnp.eye(2)
+    return jnp.linalg.solve(mtm, jnp.einsum("pai,pa->pi", m, y)[..., None])[..., 0]
+
+
+def hybrid_residuals(params, args):
+    nominal_rad, stats = args
+    m, y = _hybrid_design(nominal_rad, params, stats)
+    z = _solve_2x2(m, y)
+    return (jnp.einsum("paj,pj->pa", m, z) - y).reshape(-1)
+
+
+def pixel_amplitudes(nominal_rad, params, stats):
+    """Fitted complex tone amplitudes z_p (carrier phase included) at given hybrid parameters."""
+    m, y = _hybrid_design(nominal_rad, params, stats)
+    ab = _solve_2x2(m, y)
+    return ab[:, 0] + 1j * ab[:, 1]
+
+
+@jax.jit
+def common_carrier(frames, hybrid_h, amplitudes, tone, noise_var, step_var_rad2=0.01):
+    """Carrier phasor u[m] common to all pixels (turbulence in the shared path, or a phase
+    ramp on the reference arm), from centred ports:
+    ṽ_kp[m] = Re(c_kp[m]·u[m]) − mean_m Re(c_kp·u),  c_kp[m] = h_k·z_p·S_p[m].
+
+    Centring (needed: uncalibrated common mode leaks into the ports) leaves u undetermined
+    along κ/S[m] when the pixels share one depth, so a random-walk prior with step variance
+    `step_var_rad2` per frame (Σ|u[m+1] − u[m]|²/step_var added to the χ²) makes it a MAP
+    estimate, which also smooths u where the tones pass through zero. Solved by conjugate
+    gradients (u as real pairs, per-frame 2×2 blocks as preconditioner)."""
+    c = hybrid_h[:, None, None] * amplitudes[None, None, :] * tone[None]  # (4, N, P)
+    wgt = (1 / noise_var)[:, None, :]
+    centred = frames - jnp.mean(frames, axis=1, keepdims=True)
+    cr, ci = jnp.real(c), jnp.imag(c)
+
+    def model(u):  # u (N, 2) → centred Re(c·u)
+        m = cr * u[None, :, 0, None] - ci * u[None, :, 1, None]
+        return m - jnp.mean(m, axis=1, keepdims=True)
+
+    def adjoint(x):  # (4, N, P) → (N, 2)
+        x = wgt * (x - jnp.mean(x, axis=1, keepdims=True))
+        return jnp.stack([jnp.sum(x * cr, (0, 2)), -jnp.sum(x * ci, (0, 2))], -1)
+
+    def roughness(u):  # Dᵀ D u for the first difference D
+        d = jnp.diff(u, axis=0)
+        zero = jnp.zeros((1, 2), u.dtype)
+        return (jnp.concatenate([zero, d]) - jnp.concatenate([d, zero])) / step_var_rad2
+
+    a00, a01, a11 = jnp.sum(wgt * cr * cr, (0, 2)), -jnp.sum(wgt * cr * ci, (0, 2)), jnp.sum(wgt * ci * ci, (0, 2))
+    a00, a11 = a00 + 2 / step_var_rad2, a11 + 2 / step_var_rad2
+    det = a00 * a11 - a01 * a01
+
+    def precondition(x):
+        return jnp.stack([(a11 * x[:, 0] - a01 * x[:, 1]) / det, (a00 * x[:, 1] - a01 * x[:, 0]) / det], -1)
+
+    rhs = adjoint(centred)
+    sol, _ = jax.scipy.sparse.linalg.cg(
+        lambda u: adjoint(model(u)) + roughness(u), rhs, x0=precondition(rhs), M=precondition, tol=1e-10, maxiter=500
+    )
+    return sol[:, 0] + 1j * sol[:, 1]
+
+
+@dataclasses.dataclass
+class HybridFit:
+    phases_rad: np.ndarray
+    relative_gains: np.ndarray
+    phase_sigma_rad: np.ndarray
+    gain_sigma: np.ndarray
+    chi2_per_dof: float
+    amplitudes: np.ndarray  # z_p
+    identified: bool
+    note: str | None
+    params: np.ndarray
+    nominal_rad: np.ndarray
+
+
+def fit_hybrid(stats: dict, nominal_rad, start=None) -> HybridFit:
+    """Stage 1: per-CCD phase errors and gains (gauge CCD 1) from the pixel statistics."""
+    nominal = jnp.asarray(nominal_rad, jnp.float64)
+    args = (nominal, stats)
+    solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12)
+    y0 = jnp.zeros(6) if start is None else jnp.asarray(start, jnp.float64)
+    sol = optx.least_squares(hybrid_residuals, solver, y0, args=args, max_steps=200, throw=False)
+    params = sol.value
+    rank = np.asarray(stats["rank"])
+    dof = int(4 * rank.sum() - 2 * rank.size - 6)
+    cov, chi2, singular, _ = covariance(hybrid_residuals, params, args, dof)
+    sig = np.sqrt(np.maximum(np.diag(cov), 0))
+    z = np.asarray(pixel_amplitudes(nominal, params, stats))
+    note = None
+    singular = singular or not np.all(np.isfinite(sig))
+    phase_sig, gain_sig = sig[:3], np.exp(np.asarray(params[3:])) * sig[3:]
+    identified = (
+        not singular
+        and sol.result == optx.RESULTS.successful
+        and np.all(phase_sig < PHASE_SIGMA_LIMIT_RAD)
+        and np.all(gain_sig < GAIN_SIGMA_LIMIT)
+    )
+    if not identified:
+        why = (
+            "the information matrix is singular"
+            if singular
+            else f"σ would be {np.degrees(np.max(phase_sig)):.2g}° and {np.max(gain_sig):.2g}"
+        )
+        note = (
+            f"phases and gains are not identifiable from these data ({why}): the four ports fix only the "
+            "plane the hybrid spans; the ellipse's shape in it needs the carrier phase to vary within "
+            "pixels over the sweep (air turbulence, or a slow phase ramp on the reference arm), "
+            "which these data do not show"
+        )
+        precise = np.all(phase_sig < PHASE_SIGMA_LIMIT_RAD) and np.all(gain_sig < GAIN_SIGMA_LIMIT)
+        if sol.result != optx.RESULTS.successful and precise and not singular:
+            note = f"the fit did not converge ({sol.result})"
+    theta = np.asarray(nominal) + np.concatenate([[0.0], np.asarray(params[:3])])
+    gains = np.exp(np.concatenate([[0.0], np.asarray(params[3:])]))
+    return HybridFit(
+        theta,
+        gains,
+        np.concatenate([[0.0], phase_sig]),
+        np.concatenate([[0.0], gain_sig]),
+        chi2 / max(dof, 1),
+        z,
+        bool(identified),
+        note,
+        np.asarray(params),
+        np.asarray(nominal),
+    )
+
+
+def fit_offsets(port_means_dn, stats: dict, fit: HybridFit, dark_dn: np.ndarray | None):
+    """Offsets o_k (DN) from the per-pixel means after removing each port's modelled tone mean.
+
+    Only o_k − g_k·o_1 is observable; o_1 comes from the dark frame when given, else the
+    gauge o_1 = 0 (the I/Q combination cancels any offset ∝ g_k, so depth is unaffected)."""
+    h = np.asarray(_hybrid_matrices(jnp.asarray(fit.nominal_rad), jnp.asarray(fit.params)))
+    z = np.stack([fit.amplitudes.real, fit.amplitudes.imag], -1)  # (P, 2)
+    s_mean = np.asarray(stats["s_mean"])
+    s_vec = np.stack([s_mean.real, s_mean.imag], -1)  # (P, 2)
+    tone_mean = np.einsum("kij,pj,pi->kp", h, z, s_vec)
+    level = np.asarray(port_means_dn) - tone_mean  # o_k + g_k·L_p
+    g = fit.relative_gains
+    per_pixel = level - g[:, None] * level[:1]  # o_k − g_k·o_1
+    n = per_pixel.shape[1]
+    offsets = np.median(per_pixel, axis=1)
+    spread = 1.4826 * np.median(np.abs(per_pixel - offsets[:, None]), axis=1)
+    sigma = np.sqrt((1.2533 * spread) ** 2 / n + (fit.gain_sigma * np.median(level[0])) ** 2)
+    if dark_dn is not None:
+        o1 = float(np.median(dark_dn[0]))
+        return offsets + g * o1, sigma, "o_1 from the dark frame; o_k − g_k·o_1 from the capture"
+    return (
+        offsets,
+        sigma,
+        (
+            "gauge o_1 = 0: only o_k − g_k·o_1 is observable without a dark frame, "
+            "and the I/Q combination cancels the rest"
+        ),
+    )

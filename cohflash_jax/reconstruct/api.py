@@ -1,0 +1,184 @@
+"""The reconstruction's entry points: frames in memory (`reconstruct_array`), an open capture
+streamed in tiles (`reconstruct_capture`), and a capture file with its calibration and
+registration files (`open_and_reconstruct`). Each takes the instrument it reconstructs for."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from ..calibration_file import Calibration, CaptureSetup, PixelMaps
+from ..capture import Capture, CaptureError
+from ..instrument import Instrument
+from ..runtime import retain_freed_memory
+from .engine import BlockReader, TileDispatcher, sub_tile_pixels
+from .plan import TilePlan, build_plan, frequency_path
+from .policy import ReconstructOptions
+
+
+@dataclasses.dataclass
+class Reconstruction:
+    """A reconstructed capture: per-pixel `outputs` (H, W) (depth_m, sigma_m, valid, …), the
+    `meta` data a depth file records, and the instrument it was reconstructed for."""
+
+    outputs: dict
+    meta: dict
+    instrument: Instrument
+
+
+def reconstruct_array(
+    frames,
+    instrument: Instrument,
+    options: ReconstructOptions | None = None,
+    *,
+    maps: PixelMaps | None = None,
+    saturation_dn: float | None = None,
+    carrier_phase_rad=None,
+) -> dict:
+    """Reconstruct in-memory frames (4, N, H, W) of `instrument` → dict of (H, W) arrays, in
+    sub-tiles dispatched asynchronously (as `reconstruct_capture` does within each tile).
+    `maps`: per-pixel offsets and gains; `saturation_dn`: the DN that marks ADC saturation
+    (default: none checked); `carrier_phase_rad` (N,): a known common carrier drift to remove."""
+    options = options or ReconstructOptions(progress=False)
+    maps = maps or PixelMaps()
+    retain_freed_memory()
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.shape[0] != 4:
+        raise ValueError(f"frames must have shape (4, N, H, W), got {frames.shape}")
+    _, n, h, w = frames.shape
+    for name, arr, shape in (
+        ("instrument.sweep.frequencies_hz", instrument.sweep.frequencies_hz, (n,)),
+        ("carrier_phase_rad", carrier_phase_rad, (n,)),
+    ):
+        if arr is not None and np.shape(arr) != shape:
+            raise ValueError(f"{name} must have shape {shape} to match frames {frames.shape}, got {np.shape(arr)}")
+    maps.check_shape(h, w, "maps")
+    plan = build_plan(maps.apply(instrument), options, saturation_dn)
+    flat = lambda a: None if a is None else np.asarray(a, np.float32).reshape(4, h * w)
+    dispatcher = TileDispatcher(plan, sub_tile_pixels(h * w, n), carrier_phase_rad)
+    out = dispatcher.dispatch(frames.reshape(4, n, h * w), flat(maps.offset_dn), None, flat(maps.gain)).gather()
+    return {k: v.reshape(h, w) for k, v in out.items()}
+
+
+def depth_meta(plan: TilePlan, options: ReconstructOptions, **extra) -> dict:
+    """What a depth file records about how its depths were made."""
+    g = plan.geometry
+    return {
+        "method": options.method,
+        "ambiguity_m": g.ambiguity_m,
+        "bin_depth_m": g.bin_depth_m,
+        "depth_window_m": list(g.valid_window_m),
+        "carrier_alignment": "tracked" if options.tracking else "static",
+        "snr_threshold_db": options.snr_threshold_db,
+        "snr_threshold_effective_db": 10 * math.log10(plan.policy.snr_threshold),
+        "dtype": options.dtype,
+        "window_bins": options.window_bins,
+        "dominant_harmonic": g.dominant_order,
+        "frequency_path": frequency_path(plan),
+        **extra,
+    }
+
+
+def reconstruct_capture(
+    capture: Capture,
+    options: ReconstructOptions,
+    instrument: Instrument | None = None,
+    *,
+    maps: PixelMaps | None = None,
+    registration_maps=None,
+) -> Reconstruction:
+    """Reconstruct an open capture tile by tile (bounded memory) for `instrument` (default:
+    the capture's own, `Capture.instrument`). `maps`: per-pixel offsets and gains (default:
+    the capture's dark frame); `registration_maps`: three (map_x, map_y) arrays (H, W) placing
+    CCDs 2–4 on CCD 1's grid."""
+    retain_freed_memory()
+    n, h, w = capture.shape
+    instrument = capture.instrument() if instrument is None else instrument
+    maps = PixelMaps(capture.dark) if maps is None else maps
+    maps.check_shape(h, w, "per-pixel maps")
+    # registered tiles arrive as float32 with saturation judged upstream on the source pixels
+    saturation = None if registration_maps is not None else capture.saturation_dn
+    plan = build_plan(maps.apply(instrument), options, saturation)
+    rows = min(options.tile_rows, h)
+    dark, gain = maps.offset_dn, maps.gain
+    t0 = time.perf_counter()
+
+    registered = None
+    if registration_maps is not None:
+        from ..registered import RegisteredTiles, register_pixel_map
+
+        registered = RegisteredTiles(capture, registration_maps, rows)
+        dark = None if dark is None else register_pixel_map(dark, registration_maps)
+        gain = None if gain is None else register_pixel_map(gain, registration_maps)
+
+    def map_tile(arr, r0, r1, fill):
+        """Rows r0:r1 of a (4, H, W) per-pixel map, padded to the tile shape → (4, P)."""
+        if arr is None:
+            return None
+        block = np.full((4, rows, w), fill, np.float32)
+        block[:, : r1 - r0] = arr[:, r0:r1]
+        return block.reshape(4, rows * w)
+
+    reader = None if registered is not None else BlockReader(capture, rows)
+
+    def tile_inputs(r0):
+        r1 = min(h, r0 + rows)
+        if registered is not None:
+            return registered.tile(r0) + (map_tile(dark, r0, r1, 0.0), map_tile(gain, r0, r1, 1.0))
+        return (r1, reader.read(r0), None, map_tile(dark, r0, r1, 0.0), map_tile(gain, r0, r1, 1.0))
+
+    outputs = {}
+
+    def collect(pending, bar):
+        tile, r0, r1 = pending
+        for k, v in tile.gather().items():
+            arr = v.reshape(rows, w)[: r1 - r0]
+            outputs.setdefault(k, np.empty((h, w), arr.dtype))[r0:r1] = arr
+        bar.update((r1 - r0) * w)
+
+    dispatcher = TileDispatcher(plan, sub_tile_pixels(rows * w, n))
+    with tqdm(total=h * w, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True) as bar:
+        pending = None
+        for r0 in range(0, h, rows):
+            r1, block, data_status, d, g = tile_inputs(r0)
+            # dispatched asynchronously: the next tile is read while this one computes
+            tile = dispatcher.dispatch(block, d, data_status, g)
+            if pending is not None:
+                collect(pending, bar)
+            pending = (tile, r0, r1)
+        collect(pending, bar)
+    meta = depth_meta(plan, options, seconds=time.perf_counter() - t0, registered=registration_maps is not None)
+    return Reconstruction(outputs, meta, instrument)
+
+
+def open_and_reconstruct(
+    path, options: ReconstructOptions, calibration_path=None, registration_path=None, capture: Capture | None = None
+) -> Reconstruction:
+    """Reconstruct a capture file for its instrument, calibrated by `calibration_path` and
+    registered by `registration_path` where given. `capture`: the file already open (it is
+    then not opened again). The calibration's fallback notes are in `meta["notes"]` (JSON)."""
+    calibration = None if calibration_path is None else Calibration.load(calibration_path)
+    reg_maps = None
+    if registration_path is not None:
+        from cohflash_calibration.registration import load_registration
+
+        reg = load_registration(registration_path)
+        reg_maps = [reg.maps(k) for k in (2, 3, 4)]
+    cap = capture if capture is not None else Capture(path)
+    try:
+        setup = CaptureSetup.of(cap, calibration)
+        result = reconstruct_capture(cap, options, setup.instrument, maps=setup.maps, registration_maps=reg_maps)
+    except CaptureError:
+        raise
+    except (NotImplementedError, ValueError) as exc:
+        raise CaptureError(f"{path}: {exc}") from None
+    finally:
+        if capture is None:
+            cap.close()
+    result.meta["notes"] = json.dumps(list(setup.notes))
+    return result

@@ -1,0 +1,155 @@
+"""Streaming a capture through the sub-tile programs with bounded memory.
+
+Row tiles are read into two reused buffers (`BlockReader`); each tile is cut into sub-tiles
+of a few hundred pixels (`sub_tile_pixels`) whose frames fit in cache, dispatched
+asynchronously and in turn to the stream devices (`TileDispatcher`); a tile is gathered
+(`PendingTile.gather`) while the next one is read and computed. On a GPU a tile is one piece.
+Measured sizes and timings: docs/performance.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..capture import Capture
+from .plan import TilePlan
+from .programs import process_tile
+
+# CPU: the uint16 frames of a sub-tile (4·N·2 bytes a pixel) fit in ~12 MiB, so its I/Q,
+# moment and FFT passes run from cache; a tile gives at least `MIN_PIECES` sub-tiles to overlap
+# reads and copies with compute; at most `MAX_SUB_TILE_PIXELS` (short sweeps would otherwise
+# give a few huge pieces, and a vmapped fit runs as long as its slowest pixel).
+SUB_TILE_CACHE_BYTES = 12 * 2**20
+MIN_PIECES = 4
+MIN_SUB_TILE_PIXELS = 256
+MAX_SUB_TILE_PIXELS = 8192
+# GPU: the whole tile a piece (per-dispatch overhead dominates small pieces), up to this much
+# of frames (a 32-row tile of 3000 frames is 245 MB; its float intermediates take several times that)
+DEVICE_PIECE_BYTES = 256 * 2**20
+BUFFER_ALIGNMENT_BYTES = 64  # JAX aliases (does not copy) host buffers aligned so on the CPU
+
+
+def sub_tile_pixels(num_pixels: int, num_frames: int, platform: str | None = None) -> int:
+    """Pixels per dispatched sub-tile on `platform` (default: JAX's default backend)."""
+    if (platform or jax.default_backend()) != "cpu":
+        return int(max(1, min(num_pixels, DEVICE_PIECE_BYTES // (8 * max(1, num_frames)))))
+    by_memory = SUB_TILE_CACHE_BYTES // (8 * max(1, num_frames))
+    return int(
+        max(1, min(num_pixels, by_memory, MAX_SUB_TILE_PIXELS, max(MIN_SUB_TILE_PIXELS, -(-num_pixels // MIN_PIECES))))
+    )
+
+
+def aligned_copy(view: np.ndarray, width: int) -> np.ndarray:
+    """A C-contiguous copy of `view`, its last axis zero-padded to `width`, in a 64-byte
+    aligned buffer, which `jax.device_put` aliases on the CPU instead of copying again
+    (`jnp.asarray` of a strided sub-tile copies twice)."""
+    shape = view.shape[:-1] + (width,)
+    size = math.prod(shape)
+    raw = np.empty(size * view.itemsize + BUFFER_ALIGNMENT_BYTES, np.uint8)
+    start = -raw.ctypes.data % BUFFER_ALIGNMENT_BYTES
+    out = raw[start : start + size * view.itemsize].view(view.dtype).reshape(shape)
+    out[..., : view.shape[-1]] = view
+    out[..., view.shape[-1] :] = 0
+    return out
+
+
+def stream_devices() -> list:
+    """The devices sub-tiles are spread over, in turn: every local CPU device where JAX has
+    several (`runtime.use_cpu_streams`), else the default device alone. One CPU device runs
+    its programs one at a time, and the serial stretches of a program (the ML polish's Newton
+    loop on a few hundred pixels) leave the other cores idle; two devices run two sub-tiles'
+    programs at once."""
+    devices = jax.local_devices()
+    return devices if devices[0].platform == "cpu" else devices[:1]
+
+
+@dataclasses.dataclass
+class PendingTile:
+    """The dispatched sub-tiles of one tile of `num_pixels` pixels (their results computing)."""
+
+    parts: list
+    num_pixels: int
+
+    def gather(self) -> dict:
+        """Join the sub-tiles' results → dict of (P,) NumPy arrays (blocks until computed)."""
+        parts = self.parts
+        return {k: np.concatenate([np.asarray(r[k]) for r in parts])[: self.num_pixels] for k in parts[0]}
+
+
+class TileDispatcher:
+    """Runs `process_tile` over tiles in sub-tiles of `sub_px` pixels, each dispatched
+    asynchronously (the last padded to the same shape: one compilation per device), in turn
+    on each of `stream_devices`. The plan and a known carrier drift are placed on every
+    device once, when the dispatcher is made, not once per tile."""
+
+    def __init__(self, plan: TilePlan, sub_px: int | None = None, carrier_phase_rad=None):
+        self.sub_px = sub_px
+        self.devices = stream_devices()
+        carrier = None if carrier_phase_rad is None else jnp.asarray(carrier_phase_rad)
+        if len(self.devices) == 1:
+            self.placed = [(plan, carrier)]
+        else:
+            put = lambda tree, d: jax.tree.map(lambda x: jax.device_put(x, d) if eqx.is_array(x) else x, tree)
+            self.placed = [put((plan, carrier), d) for d in self.devices]
+
+    def dispatch(self, frames, dark=None, data_status=None, gain=None) -> PendingTile:
+        """Dispatch a tile (4, N, P) with its per-pixel maps (4, P) and upstream status (P,)."""
+        p = frames.shape[-1]
+        sub = p if self.sub_px is None else min(self.sub_px, p)
+        several = len(self.devices) > 1
+
+        def piece(arr, k, device):
+            if arr is None:
+                return None
+            part = arr[..., k * sub : (k + 1) * sub]
+            if isinstance(part, np.ndarray):  # one host copy at most (none for a whole contiguous tile)
+                whole = part.shape[-1] == sub and part.flags.c_contiguous
+                return jax.device_put(part if whole else aligned_copy(part, sub), device)
+            if part.shape[-1] < sub:
+                part = jnp.pad(part, [(0, 0)] * (part.ndim - 1) + [(0, sub - part.shape[-1])])
+            return jax.device_put(part, device) if several else part
+
+        parts = []
+        for k in range(-(-p // sub)):
+            device = self.devices[k % len(self.devices)] if several else None
+            plan, carrier = self.placed[k % len(self.placed)]
+            parts.append(
+                process_tile(
+                    plan,
+                    piece(frames, k, device),
+                    piece(dark, k, device),
+                    piece(data_status, k, device),
+                    piece(gain, k, device),
+                    carrier,
+                )
+            )
+        return PendingTile(parts, p)
+
+
+class BlockReader:
+    """Row tiles of a capture read into two reused buffers. On the CPU a contiguous NumPy
+    array can become a device array without a copy (JAX aliases 64-byte-aligned buffers), so
+    a buffer is reused only after the tile read into it has been gathered (the caller
+    gathers tile k before reading tile k + 2). Allocating a fresh ~250 MB array per tile costs
+    more than the read itself on a cold machine (first touch of its memory)."""
+
+    def __init__(self, capture: Capture, rows: int):
+        n, h, w = capture.shape
+        self.capture, self.rows, self.h = capture, rows, h
+        self.buffers = [np.zeros((4, n, rows, w), capture.frames.dtype) for _ in range(2)]
+        self.count = 0
+
+    def read(self, r0: int) -> np.ndarray:
+        r1 = min(self.h, r0 + self.rows)
+        buf = self.buffers[self.count % 2]
+        self.count += 1
+        if r1 - r0 < self.rows:
+            buf[:, :, r1 - r0 :] = 0  # pad the last tile so every tile has one compiled shape
+        self.capture.read_tile_into(buf, slice(r0, r1))
+        return buf.reshape(buf.shape[0], buf.shape[1], -1)

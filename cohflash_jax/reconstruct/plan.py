@@ -1,0 +1,90 @@
+"""What one compiled sub-tile program needs to know, built once per configuration from the
+instrument and the options (`build_plan`): the I/Q stage, the sweep's geometry, the coarse
+stage, the estimator and the validity policy."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..capture import frequency_problem
+from ..estimate import (
+    AbstractCoarseStage,
+    AbstractDepthEstimator,
+    DelayPeriodogram,
+    EstimatorSetup,
+    UniformSpectrum,
+    choose_estimator,
+)
+from ..estimate.window_model import UniformModel
+from ..geometry import SweepGeometry
+from ..instrument import Instrument
+from .policy import ReconstructOptions, ValidityPolicy, applied_snr_threshold_db
+
+# Hybrid phases this close to one another (condition number of the I/Q design) cannot be separated
+MAX_HYBRID_CONDITIONING = 1e3
+
+
+class IQStage(eqx.Module):
+    """Data checks, I/Q and carrier alignment: the I/Q matrix and bias (DN → electrons of I, Q
+    with the hybrid's gains and offsets folded in), the ADC's saturation level (None: not
+    checked), the arithmetic precision, and carrier tracking."""
+
+    weights: jax.Array
+    bias: jax.Array
+    saturation_dn: float | None = eqx.field(static=True)
+    dtype: str = eqx.field(static=True)
+    tracking: bool = eqx.field(static=True)
+    track_window: int = eqx.field(static=True)
+
+
+class TilePlan(eqx.Module):
+    """Everything a sub-tile's programs need (`reconstruct.programs`)."""
+
+    iq: IQStage
+    model: UniformModel
+    geometry: SweepGeometry
+    coarse: AbstractCoarseStage
+    estimator: AbstractDepthEstimator
+    policy: ValidityPolicy
+    method: str = eqx.field(static=True)
+
+
+def build_plan(instrument: Instrument, options: ReconstructOptions, saturation_dn: float | None = None) -> TilePlan:
+    """The plan for reconstructing captures of `instrument` (as described: nominal or
+    calibrated) with `options`. `saturation_dn`: the DN that marks ADC saturation (None: no check)."""
+    f = np.asarray(instrument.sweep.frequencies_hz, np.float64)
+    problem = frequency_problem(f)
+    if problem:
+        raise ValueError(problem)
+    hybrid = instrument.hybrid
+    if hybrid.conditioning() > MAX_HYBRID_CONDITIONING:
+        raise ValueError(
+            f"hybrid phases {np.round(np.asarray(hybrid.phases_rad), 4)} are nearly equal: I/Q cannot be separated"
+        )
+    # sideband weights at the sweep's mean frequency: with a roll-off the fundamental's
+    # amplitude tapers over the band, which to first order leaves the phase-locked depth
+    # unbiased (the taper's odd part is in quadrature with the tone's even kernel)
+    weights = np.asarray(instrument.modulator.weights(float(np.mean(f))), np.float64)
+    delay = float(instrument.system_delay_s)
+    geometry = SweepGeometry.of(f, weights, delay)
+    model = UniformModel(float(f[0]), geometry.step_hz, jnp.asarray(weights), delay, num_frames=f.size)
+    if geometry.uniform:
+        coarse = UniformSpectrum(geometry, model.weights, geometry.first_bin(options.min_depth_m))
+    else:
+        if options.min_depth_m > 0:
+            raise ValueError("min_depth_m applies to uniform sweeps only")
+        coarse = DelayPeriodogram.of(geometry, model.weights, f)
+    setup = EstimatorSetup(f, geometry, model, options.window_bins, options.max_steps)
+    iq_w, iq_b = hybrid.iq_matrix_dn(1.0)
+    iq = IQStage(iq_w, iq_b, saturation_dn, options.dtype, options.tracking, options.track_window_frames)
+    threshold = 10 ** (applied_snr_threshold_db(options.snr_threshold_db, f.size) / 10)
+    policy = ValidityPolicy(threshold, float(options.max_fit_chi2), geometry.valid_window_m)
+    return TilePlan(iq, model, geometry, coarse, choose_estimator(options.method, setup), policy, options.method)
+
+
+def frequency_path(plan: TilePlan) -> str:
+    """Which stages a plan runs, in words (recorded in the depth file)."""
+    return "; ".join(part for part in (plan.coarse.description, plan.estimator.description) if part)

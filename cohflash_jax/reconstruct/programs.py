@@ -1,0 +1,130 @@
+"""The compiled programs of one sub-tile of pixels: data checks and I/Q, the carrier axis,
+the rotation onto it, and the inversion (coarse stage, estimator, validity).
+
+They are separate programs, dispatched asynchronously, because XLA's CPU compiler fuses them
+badly: within one program it recomputed the per-pixel cos/sin of the carrier axis for every
+frame, and computed the rotated sequence straight into the transposed layout, reading I/Q
+with a stride. For long sweeps (`SPLIT_AXIS_MIN_FRAMES`) the carrier axis is a program of its
+own too: fused with I/Q, its moments recomputed I/Q from the frames. Timings of each split:
+docs/performance.md.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from ..estimate.iq import carrier_axis, derotate, iq_from_frames, rotate_onto_axis, track_carrier_drift
+from ..runtime import async_filter_jit
+from .plan import TilePlan
+from .policy import MAX_FIT_EXCURSION_BINS, classify
+
+SPLIT_AXIS_MIN_FRAMES = 512
+
+
+def process_tile(plan: TilePlan, frames, dark, data_status=None, gain=None, carrier_phase_rad=None):
+    """Depth and companions for a tile of pixels: frames (4, N, P) → dict of (P,) arrays.
+    `dark` (4, P): per-pixel offsets (DN); `gain` (4, P): per-pixel gains relative to the
+    hybrid's global ones; `data_status` (P,) int8: codes found upstream (e.g. registration);
+    `carrier_phase_rad` (N,): a known carrier drift common to all pixels, removed first.
+    Three or four programs, dispatched asynchronously (none waits for its result)."""
+    if frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES:
+        i, q, flags = iq_and_checks(plan, frames, dark, gain, carrier_phase_rad)
+        c, s, noise_var = carrier_axis_program(i, q)
+    else:
+        i, q, (c, s, noise_var), flags = iq_and_carrier_axis(plan, frames, dark, gain, carrier_phase_rad)
+    return invert_sequence(plan, rotate_program(i, q, c, s), noise_var, flags, data_status)
+
+
+rotate_program = jax.jit(rotate_onto_axis)
+
+
+def _axis(i, q):
+    """`carrier_axis`'s cos φ, sin φ and noise variance (float64, as the estimators use it)."""
+    c, s, noise_var, _ = carrier_axis(i, q)
+    return c, s, noise_var.astype(jnp.float64)
+
+
+carrier_axis_program = jax.jit(_axis)
+
+
+def _checks_and_iq(plan: TilePlan, frames, dark, gain=None, carrier_phase_rad=None):
+    """Data checks and I/Q: frames (4, N, P) → I, Q (N, P) (drift removed where asked) and the
+    data flags (dead, saturated, finite), each (P,)."""
+    stage = plan.iq
+    real = jnp.float64 if stage.dtype == "float64" else jnp.float32
+    high, low = jnp.max(frames, axis=1), jnp.min(frames, axis=1)  # (4, P)
+    dead = jnp.any(high == low, axis=0)
+    saturated = (
+        jnp.zeros(dead.shape, bool) if stage.saturation_dn is None else jnp.any(high >= stage.saturation_dn, axis=0)
+    )
+    if jnp.issubdtype(frames.dtype, jnp.floating):
+        finite = jnp.all(jnp.isfinite(frames), axis=(0, 1))
+        frames = jnp.where(jnp.isfinite(frames), frames, 0.0)
+    else:
+        finite = jnp.ones(dead.shape, bool)
+    i, q = iq_from_frames(frames.astype(real), stage.weights, stage.bias, dark, gain)  # (N, P) each
+    if carrier_phase_rad is not None:
+        i, q = derotate(i, q, jnp.asarray(carrier_phase_rad, i.dtype)[:, None])
+    if stage.tracking:  # remove a slow carrier drift first (turbulence)
+        i, q = derotate(i, q, track_carrier_drift(i, q, stage.track_window))
+    return i, q, (dead, saturated, finite)
+
+
+iq_and_checks = async_filter_jit(_checks_and_iq)
+
+
+@async_filter_jit
+def iq_and_carrier_axis(plan: TilePlan, frames, dark, gain=None, carrier_phase_rad=None):
+    """`iq_and_checks` and the carrier axis in one program → I, Q, (cos φ, sin φ, noise
+    variance), flags."""
+    i, q, flags = _checks_and_iq(plan, frames, dark, gain, carrier_phase_rad)
+    return i, q, _axis(i, q), flags
+
+
+@async_filter_jit
+def invert_sequence(plan: TilePlan, r, noise_var, flags, data_status=None):
+    """Depth, its σ, amplitude, SNR and status per pixel from the carrier-aligned sequence
+    r (N, P), the carrier axis's noise variance and the data flags (`iq_and_checks`): the
+    coarse stage, the plan's estimator, then `policy.classify`."""
+    dead, saturated, finite = flags
+    n = r.shape[0]
+    coarse = plan.coarse(r)
+    est = plan.estimator.estimate(plan.coarse, coarse, r, noise_var)
+    depth, coarse_depth = est.depth_m, est.coarse_depth_m
+    dc_edge = plan.coarse.dc_edge(coarse)
+    if plan.estimator.refines:
+        depth = plan.geometry.reflect(depth)
+        # a fit that ran off (seen at ~7 dB: 1e14 m) is flagged out_of_range
+        wandered = jnp.abs(depth - coarse_depth) > MAX_FIT_EXCURSION_BINS * plan.geometry.bin_depth_m
+    else:
+        wandered = jnp.zeros(depth.shape, bool)
+    # flagged pixels that left the coarse stage report the coarse depth, so depth maps stay in range
+    depth = jnp.where(wandered | dc_edge, coarse_depth, depth)
+    amplitude = est.amplitude
+    snr = n * (amplitude * plan.model.weights[plan.geometry.dominant_order]) ** 2 / jnp.maximum(noise_var, 1e-30)
+    status = classify(
+        plan.policy,
+        depth,
+        snr,
+        out_of_range=wandered,
+        poor_fit=est.fit_chi2 > plan.policy.max_fit_chi2,
+        dc_edge=dc_edge,
+        converged=est.converged,
+        fit_ok=est.fit_ok,
+        dead=dead,
+        saturated=saturated,
+        finite=finite,
+        data_status=data_status,
+    )
+    safe = lambda a: jnp.where(jnp.isfinite(a), a, 0.0)
+    return {
+        "depth_m": safe(depth),
+        "amplitude": safe(amplitude),
+        "sigma_m": safe(est.sigma_m),
+        "snr": safe(snr),
+        "fit_status": status,
+        "valid": status == 0,
+        "coarse_depth_m": safe(coarse_depth),
+        "fit_chi2": safe(est.fit_chi2),
+    }
