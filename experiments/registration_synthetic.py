@@ -12,7 +12,8 @@ import cv2
 import numpy as np
 
 from cohflash_calibration.board import Board
-from cohflash_calibration.registration import register, save_report, write_registration
+from cohflash_calibration.registration import register, write_registration
+from cohflash_calibration.report import save_report
 from cohflash_calibration.synthetic import board_poses, default_rig, write_rig_views
 from cohflash_experiments import study_parser
 from cohflash_jax.fileio import write_csv

@@ -154,3 +154,15 @@ def test_zero_echo_ends_with_a_clear_result(paper_instrument, tmp_path, capsys):
     # a pixel named twice is refused before any sampling, naming it
     assert main(["uncertainty", str(cap), "--pixel", "0,0", "--pixel", "0,0", "--out", str(out)]) == 2
     assert "named more than once: (0, 0)" in capsys.readouterr().err
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_a_posterior_is_reproducible_for_its_seed(paper_instrument):
+    """emcee draws its moves from NumPy's global generator unless seeded: the same pixel and
+    seed must give the same chain, whatever ran before in the process."""
+    frames = cf.simulate(cf.planar(effects=NOISE), paper_instrument, 1, 1, jax.random.key(4))
+    first = _posteriors(paper_instrument, frames, max_steps=500, seed=9)[0]
+    np.random.default_rng().standard_normal(10)  # what a library might do in between
+    np.random.seed(None)
+    second = _posteriors(paper_instrument, frames, max_steps=500, seed=9)[0]
+    np.testing.assert_array_equal(first.samples, second.samples)

@@ -66,7 +66,8 @@ def add_parser(sub) -> None:
 
 def run_registration(args) -> int:
     from cohflash_calibration.board import Board
-    from cohflash_calibration.registration import register, save_report, write_registration
+    from cohflash_calibration.registration import register, write_registration
+    from cohflash_calibration.report import save_report
 
     board = Board.parse(args.board, args.square_mm)
     reg = register(args.images, board, args.distance_mm, progress=not args.quiet)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 
-from ..design.optimise import DesignProblem
+from ..design.problem import DesignProblem
 from ..radiometry import PAPER_DISTANCE_M, PAPER_PROBE_POWER_W, PAPER_REFLECTANCE
 from .common import HelpFormatter, add_quiet
 

@@ -38,8 +38,8 @@ def run(args) -> int:
     from ..calibration_file import Calibration, CaptureSetup
     from ..capture import Capture
     from ..fileio import atomic_path
+    from ..posteriors import plot_posterior, run_pixels, write_posteriors
     from ..reconstruct import ReconstructOptions
-    from ..uncertainty import plot_posterior, run_pixels, write_posteriors
 
     pixels = list(args.pixel or []) + (args.roi or [])
     if not pixels:

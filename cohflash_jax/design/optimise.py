@@ -3,7 +3,7 @@
 For a frame count N, the continuous variables (start frequency, step, modulation index, bias,
 exposure, probe power; a warp of the frequency schedule for non-uniform sweeps) are optimised
 by BFGS (optimistix) on log CRLB through jax.grad. Box constraints are built into the
-parametrisation (`_decode`): unambiguous range c/(4Δf_max) ≥ R, highest frequency ≤ f_max,
+parametrisation (`problem.decode`): unambiguous range c/(4Δf_max) ≥ R, highest frequency ≤ f_max,
 power ≤ P_max, exposure ≤ frame period and below saturation. The constraints the
 parametrisation cannot hold are in one table (`CONSTRAINTS`), which gives the objective its
 penalties, the feasibility test (`meets`) and the report of active constraints. N is then the
@@ -27,10 +27,8 @@ from tqdm.auto import tqdm
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import SENSOR_NOISE, crlb_from_fisher, depth_fisher
 from ..instrument import Instrument
-from ..radiometry import LinkBudget
-from ..sensor import Sensor
-from .monte_carlo import monte_carlo
 from .parameters import design_instrument
+from .problem import DesignProblem, decode, schedule
 
 # The ML fit ranks every likelihood ripple within ±1 DFT bin of the coarse estimate, so what
 # limits it is the likelihood itself: its ripple-to-ripple contrast grows with (ripple/σ_f)²,
@@ -43,93 +41,6 @@ MIN_MEAN_TERM_SNR = 25.0  # the sign is then wrong with probability < 3e-7 (5σ)
 SIGN_SNR_MARGIN = 1.2
 PENALTY_WEIGHT = 30.0  # penalties in log space: steep cliffs would stall the line search
 MAX_BFGS_STEPS = 400
-
-
-@dataclasses.dataclass(frozen=True)
-class DesignProblem:
-    """Targets and constraints of `optimise_design` (SI units)."""
-
-    target_precision_m: float
-    max_range_m: float
-    distance_m: float = 30.5
-    reflectance: float = 0.5
-    max_power_w: float = 15.86e-3
-    frame_rate_hz: float = 150.0
-    min_frequency_hz: float = 0.1e9
-    max_frequency_hz: float = 30e9
-    max_modulation_index: float = 5.0
-    schedule: str = "uniform"  # or "warped": f = start + span·u^p, p optimised
-    max_frames: int = 32768
-    saturation_fraction: float = 0.8  # exposure keeps the brightest port below this share of full well
-
-    def __post_init__(self):
-        for name in (
-            "target_precision_m",
-            "max_range_m",
-            "distance_m",
-            "max_power_w",
-            "frame_rate_hz",
-            "max_frequency_hz",
-            "reflectance",
-        ):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive")
-        if self.reflectance > 1:
-            raise ValueError(f"reflectance must be at most 1, got {self.reflectance}")
-        if self.max_frequency_hz <= self.min_frequency_hz:
-            raise ValueError("max_frequency_hz must exceed min_frequency_hz")
-        if self.schedule not in ("uniform", "warped"):
-            raise ValueError("schedule must be 'uniform' or 'warped'")
-        sensor = Sensor()
-        ref_rate = float(sensor.electrons(LinkBudget().reference_power_per_pixel_w)) / float(sensor.exposure_s)
-        # brightest port: a quarter of the reference ideally; budget half of it (hybrid imbalance)
-        t_sat = (
-            self.saturation_fraction * float(sensor.full_well_e) / (0.5 * ref_rate + float(sensor.dark_current_e_per_s))
-        )
-        object.__setattr__(self, "_max_exposure_s", min(1.0 / self.frame_rate_hz, t_sat))
-
-    def max_step_hz(self, n):
-        """Largest step: the unambiguous range, and the band's room for n frames (n may be traced)."""
-        room = (self.max_frequency_hz - self.min_frequency_hz) / jnp.maximum(n - 1, 1)
-        return jnp.minimum(C / (4 * self.max_range_m), room)
-
-    def max_exposure_s(self) -> float:
-        """Longest exposure: the frame period, or where the brightest port nears full well."""
-        return self._max_exposure_s
-
-
-_sig = jax.nn.sigmoid
-
-
-def _decode(z, n, problem: DesignProblem):
-    """Unconstrained z → design variables inside their bounds (constraints by construction)."""
-    step_max = problem.max_step_hz(n)
-    span_max = problem.max_frequency_hz - problem.min_frequency_hz
-    step = step_max * _sig(z[0])
-    start = problem.min_frequency_hz + (span_max - (n - 1) * step) * _sig(z[1])
-    x = 0.05 + (0.5 * problem.max_modulation_index - 0.05) * _sig(z[2])
-    bias = 0.05 + (math.pi / 2 - 0.1) * _sig(z[3])
-    exposure = problem.max_exposure_s() * (0.01 + 0.99 * _sig(z[4]))
-    power = problem.max_power_w * _sig(z[5])
-    warp = jnp.exp(0.7 * jnp.tanh(z[6])) if problem.schedule == "warped" else 1.0
-    return {
-        "step_hz": step,
-        "start_hz": start,
-        "modulation_index": 2 * x,
-        "bias_rad": bias,
-        "exposure_s": exposure,
-        "probe_power_w": power,
-        "warp": warp,
-    }
-
-
-def _schedule(v, n, n_cap):
-    """Frequencies (n_cap,) of which the first n are used: uniform (warp 1), or warped
-    f = start + span·u^p over the same band (p < 1 crowds frames towards the top)."""
-    m = jnp.arange(n_cap, dtype=jnp.float64)
-    span = (n - 1) * v["step_hz"]
-    u = jnp.clip(m / jnp.maximum(n - 1, 1), 0.0, 1.0)
-    return v["start_hz"] + span * u ** v["warp"]
 
 
 def mean_term_snr(inst: Instrument, mask, distance_m, reflectance):
@@ -161,8 +72,8 @@ class Evaluation(eqx.Module):
 def evaluate(z, n, n_cap: int, problem: DesignProblem) -> Evaluation:
     """Decode z for N = n (frames beyond n masked) and evaluate its bounds (traced: under jit,
     as the objective and `evaluate_compiled` run it)."""
-    v = _decode(z, n, problem)
-    f = _schedule(v, n, n_cap)
+    v = decode(z, n, problem)
+    f = schedule(v, n, n_cap)
     mask = (jnp.arange(n_cap) < n).astype(jnp.float64)
     inst = design_instrument(
         start_hz=v["start_hz"],
@@ -414,79 +325,3 @@ def optimise_design(problem: DesignProblem, progress: bool = True) -> DesignResu
             bar.update(1)
     n, _, ev = best
     return _result(n, ev, problem, True)
-
-
-def design_point(result: DesignResult, problem: DesignProblem) -> dict:
-    """The optimum as a sweep/Monte Carlo point (paper units)."""
-    v = result.variables
-    return {
-        "start_ghz": v["start_hz"] / 1e9,
-        "step_mhz": v["step_hz"] / 1e6,
-        "num_steps": result.num_frames,
-        "distance_m": problem.distance_m,
-        "reflectance": problem.reflectance,
-        "probe_power_mw": v["probe_power_w"] * 1e3,
-        "exposure_ms": v["exposure_s"] * 1e3,
-        "modulation_index": v["modulation_index"],
-        "bias_rad": v["bias_rad"],
-        "frame_rate_hz": problem.frame_rate_hz,
-    }
-
-
-def design_report(
-    problem: DesignProblem, compare_warped: bool = False, validate_trials: int = 256, progress: bool = True
-) -> dict:
-    """Optimise, optionally compare a warped schedule at the same frame count, validate by
-    Monte Carlo at the optimum → {"document": JSON-able dict, "text": summary}."""
-    result = optimise_design(problem, progress)
-    v = result.variables
-    doc = {
-        "problem": dataclasses.asdict(problem),
-        "feasible": result.feasible,
-        "note": result.note,
-        "num_frames": result.num_frames,
-        "acquisition_s": result.acquisition_s,
-        "crlb_mm": result.crlb_m * 1e3,
-        "coarse_crlb_mm": result.coarse_crlb_m * 1e3,
-        "variables": v,
-        "active_constraints": result.active_constraints,
-        "unambiguous_range_m": C / (4 * float(np.max(np.diff(result.frequencies_hz)))),
-        "frequencies_hz": {"first": float(result.frequencies_hz[0]), "last": float(result.frequencies_hz[-1])},
-    }
-    lines = [
-        ("optimum" if result.feasible else "NOT FEASIBLE: " + result.note),
-        f"  {result.num_frames} frames = {result.acquisition_s:.4g} s at {problem.frame_rate_hz:g} frames/s; "
-        f"CRLB {result.crlb_m * 1e3:.4g} mm (target {problem.target_precision_m * 1e3:g} mm)",
-        f"  sweep {result.frequencies_hz[0] / 1e9:.4f} … {result.frequencies_hz[-1] / 1e9:.4f} GHz, step "
-        f"{v['step_hz'] / 1e6:.4g} MHz (unambiguous to {doc['unambiguous_range_m']:.4g} m)",
-        f"  modulation index {v['modulation_index']:.3f}, bias {v['bias_rad']:.3f} rad, exposure "
-        f"{v['exposure_s'] * 1e3:.4g} ms, probe power {v['probe_power_w'] * 1e3:.4g} mW",
-        "  active constraints: " + ("; ".join(result.active_constraints) or "none"),
-    ]
-    if compare_warped and result.feasible:
-        warped_problem = dataclasses.replace(problem, schedule="warped")
-        _, ev_w = solve_for_n(result.num_frames, frame_cap(problem), warped_problem)
-        ok = meets(ev_w, problem)
-        doc["warped"] = {
-            "crlb_mm": ev_w.crlb_m * 1e3,
-            "coarse_crlb_mm": ev_w.coarse_crlb_m * 1e3,
-            "warp": ev_w.variables["warp"],
-            "meets_constraints": ok,
-            "frames": result.num_frames,
-        }
-        verdict = "beats" if (ok and ev_w.crlb_m < 0.99 * result.crlb_m) else "does not beat"
-        lines.append(
-            f"  warped schedule (f = start + span·u^p, p = {ev_w.variables['warp']:.3f}) at the same "
-            f"{result.num_frames} frames: CRLB {ev_w.crlb_m * 1e3:.4g} mm"
-            f"{'' if ok else ' (violates the range/ripple constraints)'}"
-            f" — {verdict} the uniform one ({result.crlb_m * 1e3:.4g} mm)"
-        )
-    if validate_trials > 0 and result.feasible:
-        mc = monte_carlo(design_point(result, problem), validate_trials, seed=1)
-        doc["validation"] = mc
-        lines.append(
-            f"  Monte Carlo (simulate + ML reconstruct, {mc['mc_trials']} pixels): precision "
-            f"{mc['mc_precision_mm']:.4g} mm = {mc['mc_precision_mm'] / (result.crlb_m * 1e3):.2f}× CRLB, "
-            f"bias {mc['mc_bias_mm']:+.3g} mm, valid {mc['mc_valid_fraction']:.0%}"
-        )
-    return {"document": doc, "text": "\n".join(lines)}

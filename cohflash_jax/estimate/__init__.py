@@ -4,6 +4,7 @@ estimator (`coarse`), and the estimators behind one interface (`base`), chosen b
 (`table`), time-domain ML (`time_domain`)."""
 
 from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult
+from .candan import CandanPeak
 from .coarse import AbstractCoarseStage, CoarseSpectrum, DelayPeriodogram, UniformSpectrum
 from .peak import DFTPeak, InterpolatedPeak
 from .registry import METHODS, Method, choose_estimator
@@ -25,6 +26,7 @@ __all__ = [
     "METHODS",
     "Method",
     "choose_estimator",
+    "CandanPeak",
     "TableML",
     "TimeDomainML",
     "WindowML",

@@ -60,6 +60,18 @@ class FitResult(eqx.Module):
         finite = jnp.isfinite(self.depth_m) & jnp.isfinite(self.sigma_depth_m) & jnp.isfinite(self.amplitude)
         return finite & self.well_posed
 
+    def to_estimate(self, coarse_depth_m, fit_chi2) -> DepthEstimate:
+        """The fit as an estimator's answer (amplitude ≥ 0), started from `coarse_depth_m`."""
+        return DepthEstimate(
+            self.depth_m,
+            jnp.abs(self.amplitude),
+            self.sigma_depth_m,
+            coarse_depth_m,
+            self.converged,
+            self.finite_and_well_posed(),
+            fit_chi2,
+        )
+
 
 @dataclasses.dataclass(frozen=True)
 class EstimatorSetup:

@@ -79,6 +79,11 @@ def align_carrier_static(i: Float[Array, "N P"], q: Float[Array, "N P"]):
     return rotate_onto_axis(i, q, c, s), noise_var, phase
 
 
+# Frames a carrier-drift estimate averages over: long enough to average the tone out of the
+# mean term at 3000 frames, short against the drift of turbulence (0.05 rad/√frame)
+DRIFT_WINDOW_FRAMES = 101
+
+
 def moving_average(x: Array, window: int) -> Array:
     """Centred moving average along axis 0 with a window shrinking at the ends."""
     n = x.shape[0]
@@ -92,7 +97,7 @@ def moving_average(x: Array, window: int) -> Array:
 
 
 def track_carrier_drift(
-    i: Float[Array, "N P"], q: Float[Array, "N P"], window_frames: int = 101
+    i: Float[Array, "N P"], q: Float[Array, "N P"], window_frames: int = DRIFT_WINDOW_FRAMES
 ) -> Float[Array, "N P"]:
     """Slow drift φ[m] of the optical carrier phase (turbulence), per pixel, zero-mean.
 

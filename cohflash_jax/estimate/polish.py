@@ -8,9 +8,11 @@ from the coarse estimate converges: the unknown is scaled (docs/physics.md).
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int
 
 # A polish stops once its step is below this fraction of the pixel's predicted σ (finer steps
 # move the depth by noise-irrelevant amounts), and never above 0.1 µm where σ is that small.
@@ -18,9 +20,17 @@ STEP_TOLERANCE_SIGMA = 1e-2
 STEP_TOLERANCE_FLOOR_MM = 1e-4
 
 
-def polish_depth(
-    cost, start_mm, *, max_steps: int, tolerance_mm=STEP_TOLERANCE_FLOOR_MM, report_step_limit: bool = False
-):
+class Polish(eqx.Module):
+    """Where a polish ended: the offset (mm, or the cost's own unit), whether the solver
+    succeeded, its Newton steps, and whether it stopped at its step limit (not converged)."""
+
+    value: Float[Array, ""]
+    succeeded: Bool[Array, ""]
+    num_steps: Int[Array, ""]
+    at_step_limit: Bool[Array, ""]
+
+
+def polish_depth(cost, start_mm, *, max_steps: int, tolerance_mm=STEP_TOLERANCE_FLOOR_MM) -> Polish:
     """Minimise a 1-D least-squares cost (depth offset in mm) from a start inside the right
     basin: optimistix Newton on its slope, with the exact second derivative (forward over
     forward). Gauss–Newton drops the residual-curvature term, which at finite SNR makes its
@@ -28,13 +38,16 @@ def polish_depth(
     steps on average and 12–16 for the slowest pixel of a batch — and a vmapped solve runs as
     long as its slowest pixel — against 2.2 and 3–5 for Newton, to the same depths (≤ 1e-4 mm).
     Newton finds maxima as readily as minima: check the cost at the result with `descended`
-    (the caller evaluates it there anyway). Returns (offset_mm, solver_succeeded, num_steps),
-    and with `report_step_limit` also whether it stopped at `max_steps`."""
+    (the caller evaluates it there anyway)."""
     slope = lambda x, _: jax.jvp(cost, (x,), (jnp.ones_like(x),))[1]
     solver = optx.Newton(rtol=1e-5, atol=tolerance_mm)
     sol = optx.root_find(slope, solver, start_mm, max_steps=max_steps, throw=False)
-    out = sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
-    return out + (sol.result == optx.RESULTS.nonlinear_max_steps_reached,) if report_step_limit else out
+    return Polish(
+        sol.value,
+        sol.result == optx.RESULTS.successful,
+        sol.stats["num_steps"],
+        sol.result == optx.RESULTS.nonlinear_max_steps_reached,
+    )
 
 
 def descended(final_cost, ceiling):

@@ -12,6 +12,7 @@ import dataclasses
 from collections.abc import Callable
 
 from .base import AbstractDepthEstimator, EstimatorSetup
+from .candan import CandanPeak
 from .peak import DFTPeak, InterpolatedPeak
 from .table import TableML, table_fits
 from .time_domain import TimeDomainML
@@ -39,6 +40,7 @@ class Method:
 METHODS: dict[str, Method] = {
     "dft": Method(DFTPeak.build, "depth of the strongest DFT bin (periodogram depth on a non-uniform schedule)"),
     "interp": Method(InterpolatedPeak.build, "the DFT peak interpolated between bins"),
+    "candan": Method(CandanPeak.build, "the DFT peak interpolated from its complex neighbours (Jacobsen–Candan)"),
     "ml": Method(phase_locked_ml, "phase-locked maximum likelihood, σ at the CRLB"),
 }
 

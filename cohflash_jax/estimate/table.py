@@ -201,8 +201,8 @@ def refine_ml_table(
 
     def polish(b_c, n_c, rid, tol):
         gain = lambda u: _poly(b_c, u) ** 2 / (_poly(n_c, u) + rid)
-        u, solved, steps = polish_depth(lambda u: -gain(u), jnp.zeros(()), max_steps=max_steps, tolerance_mm=tol)
-        return u, solved & (gain(u) >= gain(jnp.zeros(())) * (1 - 1e-9)), steps
+        p = polish_depth(lambda u: -gain(u), jnp.zeros(()), max_steps=max_steps, tolerance_mm=tol)
+        return p.value, p.succeeded & (gain(p.value) >= gain(jnp.zeros(())) * (1 - 1e-9)), p.num_steps
 
     u, solved, num_steps = jax.vmap(polish)(b_coeffs, norm_coeffs, ridge, tolerance_u)
     # a data-free pixel (dead, or zeroed NaN frames) has a flat cost and a NaN Newton step
@@ -300,12 +300,4 @@ class TableML(AbstractDepthEstimator):
         n = sequence.shape[0]
         floor = 1e-9 * jnp.mean(jnp.square(sequence.astype(jnp.float64)), axis=0)
         chi2 = fit.cost / (jnp.maximum(noise_var, jnp.maximum(floor, 1e-30)) * (n - 3))
-        return DepthEstimate(
-            fit.depth_m,
-            jnp.abs(fit.amplitude),
-            fit.sigma_depth_m,
-            coarse_depth,
-            fit.converged,
-            fit.finite_and_well_posed(),
-            chi2,
-        )
+        return fit.to_estimate(coarse_depth, chi2)

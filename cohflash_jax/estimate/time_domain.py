@@ -59,13 +59,11 @@ def refine_time_domain(
 
     grid_mm = jnp.linspace(-1e3 * grid_half_width_m, 1e3 * grid_half_width_m, grid_points)
     costs = jax.vmap(lambda g: jnp.sum(residual(g) ** 2))(grid_mm)
-    offset_mm, solved, num_steps = polish_depth(
-        lambda x: jnp.sum(residual(x) ** 2), grid_mm[jnp.argmin(costs)], max_steps=max_steps
-    )
-    depth = coarse_depth_m + 1e-3 * offset_mm
+    polish = polish_depth(lambda x: jnp.sum(residual(x) ** 2), grid_mm[jnp.argmin(costs)], max_steps=max_steps)
+    depth = coarse_depth_m + 1e-3 * polish.value
     final = design(depth)
     coef, res = _project(final, y)
-    converged = solved & descended(jnp.sum(res**2), jnp.min(costs))
+    converged = polish.succeeded & descended(jnp.sum(res**2), jnp.min(costs))
     amp = coef[1] * scale
     d_tone = jax.jvp(lambda d: design(d)[:, 1], (depth,), (jnp.ones_like(depth),))[1]
     # Fisher information of (depth, c, A) per unit noise variance, with the data unscaled
@@ -74,7 +72,7 @@ def refine_time_domain(
     information = depth_information(f_dd, slope @ tone, tone @ tone, jnp.sum(slope), float(f.shape[0]), jnp.sum(tone))
     sigma = sigma_from_information(information / jnp.maximum(noise_var, 1e-30))
     posed = well_posed(coef[1], tone @ tone, y @ y, f_dd, information)
-    return FitResult(depth, coef[0] * scale, amp, sigma, converged, num_steps, jnp.sum(res**2) * scale**2, posed)
+    return FitResult(depth, coef[0] * scale, amp, sigma, converged, polish.num_steps, jnp.sum(res**2) * scale**2, posed)
 
 
 class TimeDomainML(AbstractDepthEstimator):
@@ -118,12 +116,4 @@ class TimeDomainML(AbstractDepthEstimator):
                 max_steps=self.max_steps,
             )
         )(sequence.T, coarse_depth, noise_var)
-        return DepthEstimate(
-            fit.depth_m,
-            jnp.abs(fit.amplitude),
-            fit.sigma_depth_m,
-            coarse_depth,
-            fit.converged,
-            fit.finite_and_well_posed(),
-            jnp.full(coarse_depth.shape, -1.0),
-        )
+        return fit.to_estimate(coarse_depth, jnp.full(coarse_depth.shape, -1.0))

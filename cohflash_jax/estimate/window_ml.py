@@ -238,9 +238,8 @@ def refine_ml_uniform(
 
     def polish(index, start, steps):
         one = jax.tree.map(lambda leaf: leaf[index], pix)
-        return polish_depth(
-            one.cost(model), start, max_steps=steps, tolerance_mm=one.tolerance_mm, report_step_limit=True
-        )
+        p = polish_depth(one.cost(model), start, max_steps=steps, tolerance_mm=one.tolerance_mm)
+        return p.value, p.succeeded, p.num_steps, p.at_step_limit
 
     first = min(FIRST_PASS_STEPS if first_pass_steps is None else first_pass_steps, max_steps)
     values, solved, num_steps, at_limit = jax.vmap(lambda i, x: polish(i, x, first))(owner, starts)
@@ -371,12 +370,4 @@ class WindowML(AbstractDepthEstimator):
         # estimate, which is not a misfit)
         floor = 1e-9 * jnp.mean(jnp.abs(windows) ** 2, axis=-1)
         chi2 = fit.cost / (0.5 * jnp.maximum(noise_var, jnp.maximum(floor, 1e-30)) * (2 * w - 3))
-        return DepthEstimate(
-            fit.depth_m,
-            jnp.abs(fit.amplitude),
-            fit.sigma_depth_m,
-            coarse_depth,
-            fit.converged,
-            fit.finite_and_well_posed(),
-            chi2,
-        )
+        return fit.to_estimate(coarse_depth, chi2)

@@ -11,15 +11,22 @@ import numpy as np
 
 from ..capture import Capture, CaptureError
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
-from ..estimate.iq import align_carrier_static, derotate, iq_from_frames, moving_average
+from ..estimate.iq import DRIFT_WINDOW_FRAMES, align_carrier_static, derotate, iq_from_frames, moving_average
 from ..hybrid import Hybrid
 from ..status import Status
 from .common import MIN_FRAMES, MIN_PIXELS, Estimate, tone_sequences
 from .hybrid_stage import common_carrier, fit_hybrid, fit_offsets, pixel_statistics
 from .modulator_stage import fit_modulator
 
+# A common drift is declared where the moving average's leading singular value stands this many
+# times above the pure-noise level and above the next one (nearly rank one over pixels), it
+# needs this many windows of frames, and its circle fit a relative radial spread below the limit
+DRIFT_DETECTION_FACTOR = 3.0
+DRIFT_MIN_WINDOWS = 4
+DRIFT_MAX_CIRCLE_SPREAD = 0.3
 
-def initial_common_drift(i, q, window_frames: int = 101) -> tuple[np.ndarray, str]:
+
+def initial_common_drift(i, q, window_frames: int = DRIFT_WINDOW_FRAMES) -> tuple[np.ndarray, str]:
     """First estimate of a carrier drift common to the pixels, without knowing their depths.
 
     The moving average of Z = I + iQ keeps the mean term z_p·w_0·e^{iφ[m]} (the tone averages
@@ -30,7 +37,7 @@ def initial_common_drift(i, q, window_frames: int = 101) -> tuple[np.ndarray, st
     z = np.asarray(i) + 1j * np.asarray(q)
     n, p = z.shape
     half = window_frames // 2
-    if n <= 4 * window_frames:
+    if n <= DRIFT_MIN_WINDOWS * window_frames:
         return np.zeros(n), "too few frames to look for a carrier drift"
     average = np.asarray(moving_average(jnp.asarray(z), window_frames))
     # a pure-noise N×P matrix of entry variance v has a top singular value ≈ √v(√N + √P); the
@@ -40,7 +47,7 @@ def initial_common_drift(i, q, window_frames: int = 101) -> tuple[np.ndarray, st
     m = m - m.mean(axis=0)
     u, sv, _ = np.linalg.svd(m, full_matrices=False)
     floor = math.sqrt(noise_var) * (math.sqrt(m.shape[0]) + math.sqrt(p))
-    if sv.size < 2 or not (sv[0] > 3 * floor and sv[0] > 3 * sv[1]):
+    if sv.size < 2 or not (sv[0] > DRIFT_DETECTION_FACTOR * floor and sv[0] > DRIFT_DETECTION_FACTOR * sv[1]):
         return np.zeros(n), "no common carrier drift detected"
     lead = u[:, 0]
     x, y = lead.real, lead.imag
@@ -49,7 +56,7 @@ def initial_common_drift(i, q, window_frames: int = 101) -> tuple[np.ndarray, st
     centre = cx + 1j * cy
     radius = math.sqrt(max(k + abs(centre) ** 2, 0.0))
     spread = np.std(np.abs(lead - centre) - radius) / max(radius, 1e-300)
-    if not (radius > 0 and spread < 0.3):
+    if not (radius > 0 and spread < DRIFT_MAX_CIRCLE_SPREAD):
         return np.zeros(z.shape[0]), f"carrier drift not resolved (circle fit spread {spread:.2f}): treated as static"
     phi = np.unwrap(np.angle(lead - centre))
     phi = np.concatenate([np.full(half, phi[0]), phi, np.full(n - half - phi.size, phi[-1])])

@@ -10,6 +10,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ..estimate import METHODS
+from ..estimate.iq import DRIFT_WINDOW_FRAMES
 from ..status import Status
 
 DEFAULT_SNR_THRESHOLD_DB = 14.0
@@ -22,7 +23,7 @@ DEFAULT_MAX_FIT_CHI2 = 5.0
 MAX_FIT_EXCURSION_BINS = 2.0
 DEFAULT_WINDOW_BINS = 17
 DEFAULT_MAX_STEPS = 16
-DEFAULT_TRACK_WINDOW_FRAMES = 101
+DEFAULT_TRACK_WINDOW_FRAMES = DRIFT_WINDOW_FRAMES
 DEFAULT_TILE_ROWS = 32  # = the capture writer's chunk rows: each chunk is read once
 
 
