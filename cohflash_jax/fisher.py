@@ -103,10 +103,13 @@ def depth_crlb_m(
     settings: EffectSettings | None = None,
     frequency_only: bool = False,
     range_falloff: bool = True,
+    frame_weights: Float[Array, " N"] | None = None,
 ) -> Float[Array, ""]:
-    """Depth CRLB (m) of one pixel: phase-locked (all of f_m) or frequency-only."""
+    """Depth CRLB (m) of one pixel: phase-locked (all of f_m) or frequency-only (`depth_fisher`)."""
     return crlb_from_fisher(
-        depth_fisher(instrument, distance_m, reflectance, effects, settings, frequency_only, range_falloff)
+        depth_fisher(
+            instrument, distance_m, reflectance, effects, settings, frequency_only, range_falloff, frame_weights
+        )
     )
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..fileio import atomic_path
-from ..fisher import SENSOR_NOISE, crlb_from_fisher, depth_fisher
+from ..fisher import depth_crlb_m
 from .monte_carlo import monte_carlo
 from .parameters import PARAMETERS, ambiguity_m, complete_point, design_instrument, to_si
 
@@ -63,14 +63,10 @@ def _crlb_points(
             bias_rad=th,
         )
         mask = jnp.ones(num_steps)
-        locked = crlb_from_fisher(
-            depth_fisher(inst, d, rho, SENSOR_NOISE, range_falloff=range_falloff, frame_weights=mask)
+        crlb = lambda only: depth_crlb_m(
+            inst, d, rho, frequency_only=only, range_falloff=range_falloff, frame_weights=mask
         )
-        freq_only = crlb_from_fisher(
-            depth_fisher(
-                inst, d, rho, SENSOR_NOISE, frequency_only=True, range_falloff=range_falloff, frame_weights=mask
-            )
-        )
+        locked, freq_only = crlb(False), crlb(True)
         return locked, freq_only, inst.link.echo_power_w(d, rho, range_falloff)
 
     return jax.vmap(one)(start_hz, step_hz, distance_m, power_w, exposure_s, beta, bias, reflectance)

@@ -25,7 +25,7 @@ import optimistix as optx
 from tqdm.auto import tqdm
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
-from ..fisher import SENSOR_NOISE, crlb_from_fisher, depth_fisher
+from ..fisher import SENSOR_NOISE, depth_crlb_m
 from ..instrument import Instrument
 from .parameters import design_instrument
 from .problem import DesignProblem, decode, schedule
@@ -85,14 +85,10 @@ def evaluate(z, n, n_cap: int, problem: DesignProblem) -> Evaluation:
         bias_rad=v["bias_rad"],
         frequencies_hz=f,
     )
-    locked = crlb_from_fisher(
-        depth_fisher(inst, problem.distance_m, problem.reflectance, SENSOR_NOISE, frame_weights=mask)
+    crlb = lambda only: depth_crlb_m(
+        inst, problem.distance_m, problem.reflectance, frequency_only=only, frame_weights=mask
     )
-    coarse = crlb_from_fisher(
-        depth_fisher(
-            inst, problem.distance_m, problem.reflectance, SENSOR_NOISE, frequency_only=True, frame_weights=mask
-        )
-    )
+    locked, coarse = crlb(False), crlb(True)
     steps = jnp.where(mask[1:] > 0, jnp.diff(f), 0.0)
     snr = mean_term_snr(inst, mask, problem.distance_m, problem.reflectance)
     return Evaluation(locked, coarse, jnp.sum(f * mask) / n, jnp.max(steps), snr, v, f)
