@@ -218,6 +218,32 @@ def well_posed(amplitude, tone_sq, data_sq, f_dd, schur):
     )
 
 
+def noise_estimate_inflation(num_frames: int) -> float:
+    """√(ν/(ν − 2)) with ν = N − 2: the standard deviation of error/σ̂ when σ̂ comes from the
+    carrier axis's orthogonal channel (N − 2 degrees of freedom), not the true noise — the
+    spread of a Student t. 1.03 at 35 frames, 1.0003 at 3000."""
+    dof = max(num_frames - 2, 3)
+    return math.sqrt(dof / (dof - 2))
+
+
+def amplitude_margin(snr):
+    """1/(1 − 1/√(2·snr)): the CRLB evaluated at the fitted amplitude lowered by one standard
+    error (σ_A/A ≤ 1/√(2·snr) for the peak-bin SNR N·(A·w)²/σ²), capped at 2. A pixel that
+    passes the detection threshold was more often lucky than not: where few pixels pass, the
+    ones that pass have amplitudes above their true ones and σ too small (measured at 35 frames,
+    random depths: error/σ spread 1.12 at a true 16 dB, 1.25 at 14 dB). 1.11 at 16 dB, 1.03 at
+    27 dB."""
+    return 1 / (1 - jnp.minimum(1 / jnp.sqrt(2 * jnp.maximum(snr, 1e-30)), 0.5))
+
+
+def reported_sigma_m(sigma_m, num_frames: int, snr):
+    """The σ a depth file reports: an estimator's σ at the fitted values, widened for the
+    noise estimate's own error (`noise_estimate_inflation`) and the amplitude's
+    (`amplitude_margin`). Measured error/σ spread 0.92–1.06 from the 50 %-detection SNR up, at
+    35–3000 frames (docs/physics.md)."""
+    return sigma_m * noise_estimate_inflation(num_frames) * amplitude_margin(snr)
+
+
 def sum_angular_frequency_sq_uniform(num_frames: int, start_hz: float, step_hz: float) -> float:
     """Σ_m (2π f_m)² (rad²/s²) of a uniform sweep in closed form (the phase-locked Fisher sum)."""
     n, f0, df = num_frames, start_hz, step_hz

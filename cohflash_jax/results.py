@@ -33,6 +33,7 @@ _DTYPES = {
     "fit_status": np.int8,
     "coarse_depth_m": np.float64,
     "fit_chi2": np.float32,
+    "detection_ratio": np.float32,
 }
 
 

@@ -26,6 +26,8 @@ class Status(enum.IntEnum):
     OUTSIDE_REGISTRATION = 8
     POOR_FIT = 9
     DC_EDGE = 10
+    NOT_DETECTED = 11
+    EDGE_BIAS = 12
 
     @property
     def message(self) -> str:
@@ -54,6 +56,8 @@ _MESSAGES = {
     Status.OUTSIDE_REGISTRATION: "outside_registration",
     Status.POOR_FIT: "poor_fit (reduced χ² above max_fit_chi2)",
     Status.DC_EDGE: "dc_edge (power rises towards DC: slow drift)",
+    Status.NOT_DETECTED: "not_detected (no tone beyond what noise gives at the stated false-alarm rate)",
+    Status.EDGE_BIAS: "edge_bias (a peak read-out near the window's ends, where the tone's mirror image biases it)",
 }
 
 # pixels whose data cannot carry a fit or a posterior: the noise model does not hold there

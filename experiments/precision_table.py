@@ -72,7 +72,7 @@ def run(out: Path, seeds: int, size: int = 16):
     print("\n".join(md))
 
     # threshold: lower the reflectance until the ML fit breaks
-    opts = ReconstructOptions(method="ml", progress=False, snr_threshold_db=-100)
+    opts = ReconstructOptions(method="ml", progress=False, snr_threshold_db=-100, false_alarm=1.0)
     trows = []
     for rho in (0.5, 0.2, 0.1, 0.07, 0.05, 0.035, 0.025, 0.015, 0.01):
         s_i, a_i = iq_noise_and_tone_amplitude(inst, 30.5, rho)
@@ -136,7 +136,7 @@ def ten_hz_threshold(out: Path, seeds: int, size: int = 64, distance_m: float = 
     period = C / (2 * inst.sweep.step_hz)  # the comb's model repeats every c/(2Δf) of depth
     folded = distance_m % period
     truth = min(folded, period - folded)  # a real tone cannot tell τ from −τ
-    opts = ReconstructOptions(method="ml", progress=False, snr_threshold_db=-100)
+    opts = ReconstructOptions(method="ml", progress=False, snr_threshold_db=-100, false_alarm=1.0)
     snr_db, outlier = [], []
     for rho in (0.35, 0.25, 0.18, 0.12, 0.08, 0.05, 0.03):
         s_i, a_i = iq_noise_and_tone_amplitude(inst, distance_m, rho)

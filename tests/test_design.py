@@ -268,7 +268,14 @@ def test_design_cli(small_design, tmp_path):
 
 @pytest.mark.parametrize(
     "study",
-    ["paper_fig4", "precision_table", "posterior_coverage", "hybrid_calibration_study", "registration_synthetic"],
+    [
+        "paper_fig4",
+        "precision_table",
+        "posterior_coverage",
+        "hybrid_calibration_study",
+        "registration_synthetic",
+        "detection",
+    ],
 )
 def test_study_scripts_explain_themselves(study):
     """`python -m cohflash_experiments.NAME --help`: the whole docstring and every option's default."""

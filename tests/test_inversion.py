@@ -18,6 +18,8 @@ from .closed_forms import closed_form_noise_and_amplitude, crlb_frequency_only_m
 from .conftest import N_FRAMES, depth_scene
 
 OPTS = {m: ReconstructOptions(method=m, progress=False) for m in ("dft", "interp", "ml")}
+# the fit's own checks, with the detection test switched off (noise peaks it would reject first)
+FIT_CHECKS_ONLY = ReconstructOptions(method="ml", progress=False, false_alarm=1.0)
 
 
 def _reconstruct(frames, instrument, method="ml", **kw):
@@ -121,7 +123,8 @@ def test_zero_echo_is_flagged_everywhere_without_nan(paper_instrument, noise_eff
     frames = simulate_pixels(depth_scene([30.5], reflectance=0.0, effects=noise_effects))
     out = _reconstruct(frames, paper_instrument)
     assert not out["valid"].any()
-    assert np.all(out["fit_status"] == Status.LOW_SNR)
+    assert np.all(out["fit_status"] == Status.NOT_DETECTED)
+    assert np.all(_reconstruct(frames, paper_instrument, options=FIT_CHECKS_ONLY)["fit_status"] == Status.LOW_SNR)
     assert all(np.all(np.isfinite(out[k])) for k in ("depth_m", "sigma_m", "amplitude", "snr"))
 
 
@@ -586,9 +589,11 @@ def test_a_fit_whose_tone_cancels_the_offset_is_flagged_not_valid():
     frames = np.load(Path(__file__).parent / "data" / "degenerate_pixel_35_frames.npy")[:, :, None, None]
     n = frames.shape[1]
     inst = cf.Instrument(sweep=cf.FrequencySweep.uniform(6e9 / n, 6e9 / n, n))
-    out = reconstruct_array(frames, inst, OPTS["ml"])
+    out = reconstruct_array(frames, inst, FIT_CHECKS_ONLY)
     assert out["fit_status"][0, 0] == Status.FIT_FAILED and not out["valid"][0, 0]
     assert np.isfinite(out["depth_m"][0, 0])
+    # with the detection test on, the noise peak is not taken for a tone in the first place
+    assert reconstruct_array(frames, inst, OPTS["ml"])["fit_status"][0, 0] == Status.NOT_DETECTED
 
 
 @pytest.mark.parametrize("path", ["table", "window"])
@@ -613,8 +618,9 @@ def test_fits_that_trade_depth_against_the_offset_near_dc_are_flagged(path, monk
     frames = np.load(Path(__file__).parent / "data" / "near_dc_fits_35_frames.npy")[:, :, None, :]
     inst = cf.Instrument.ten_hz_mode()
     sweep, n = inst.sweep, frames.shape[1]
-    out = reconstruct_array(frames, inst, OPTS["ml"])
+    out = reconstruct_array(frames, inst, FIT_CHECKS_ONLY)
     assert np.all(out["fit_status"] == Status.FIT_FAILED) and not out["valid"].any()
+    assert not reconstruct_array(frames, inst, OPTS["ml"])["valid"].any()
     assert np.all(out["depth_m"] < 0.01) and np.all(out["coarse_depth_m"] > 0.025)
     if path == "window":
         assert np.all(10 * np.log10(out["snr"]) > 16)
@@ -657,7 +663,7 @@ def test_snr_threshold_is_raised_for_the_noise_estimate_from_few_frames():
     frames = cf.simulate(
         cf.planar(reflectance=0.5, effects=("shot_noise", "read_noise")), inst, 16, 16, jax.random.key(3)
     )
-    out = reconstruct_array(frames, inst, OPTS["ml"])
+    out = reconstruct_array(frames, inst, FIT_CHECKS_ONLY)
     snr_db = 10 * np.log10(out["snr"])
     applied = DEFAULT_SNR_THRESHOLD_DB + 10 * np.log10(snr_threshold_margin(n))
     assert np.all(snr_db[out["valid"]] >= applied)

@@ -254,11 +254,13 @@ def test_two_cpu_streams_give_the_same_bits(comb, tmp_path):
     import subprocess
     import sys
 
+    from cohflash_jax.radiometry import PAPER_PROBE_POWER_W, LinkBudget
     from cohflash_jax.reconstruct import TileDispatcher
 
     inst, plan = comb
+    bright = dataclasses.replace(inst, link=LinkBudget(probe_power_w=100 * PAPER_PROBE_POWER_W))  # most pixels valid
     frames = np.asarray(
-        cf.simulate(cf.planar(reflectance=0.5, effects=("shot_noise", "read_noise")), inst, 8, 8, jax.random.key(5))
+        cf.simulate(cf.planar(reflectance=0.5, effects=("shot_noise", "read_noise")), bright, 8, 8, jax.random.key(5))
     ).reshape(4, N, 64)
     np.save(tmp_path / "frames.npy", frames)
     script = f"""

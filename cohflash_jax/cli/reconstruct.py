@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..estimate import METHODS
+from ..estimate.detection import DEFAULT_FALSE_ALARM
 from ..reconstruct.policy import DEFAULT_MAX_FIT_CHI2, DEFAULT_SNR_THRESHOLD_DB, DEFAULT_TILE_ROWS, ReconstructOptions
 from ..status import Status
 from .common import HelpFormatter, add_quiet, provenance, range_mm
@@ -60,6 +61,12 @@ def add_parser(sub) -> None:
         default=DEFAULT_SNR_THRESHOLD_DB,
         help="validity threshold on the peak-bin SNR (raised by 10·log10(1/(1 − √(2/(N−1)))) for the "
         "noise estimate's error from N frames)",
+    )
+    r.add_argument(
+        "--false-alarm",
+        type=float,
+        default=DEFAULT_FALSE_ALARM,
+        help="probability per pixel that pure noise is detected as a tone (the detection test; 1 switches it off)",
     )
     r.add_argument(
         "--dtype", choices=("float32", "float64"), default="float32", help="I/Q and FFT precision (ML always float64)"
@@ -138,6 +145,7 @@ def options_from_args(args) -> ReconstructOptions:
         tracking=args.tracking,
         tile_rows=args.tile_rows,
         snr_threshold_db=args.snr_threshold_db,
+        false_alarm=args.false_alarm,
         dtype=args.dtype,
         progress=not args.quiet,
         min_depth_m=args.min_depth_m,

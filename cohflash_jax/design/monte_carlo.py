@@ -15,7 +15,8 @@ from .parameters import complete_point, point_instrument
 def monte_carlo(point: dict, trials: int = 256, seed: int = 0, frequencies_hz=None) -> dict:
     """Precision of simulate + reconstruct (ML) on a planar target at the point (paper units):
     `trials` pixels (a square tile, independent noise), range falloff as the point says, the
-    point's instrument (its modulator, sensor and link) in both. Optional non-uniform schedule."""
+    point's instrument (its modulator with its sidebands, sensor and link) in both. Optional
+    non-uniform schedule."""
     from ..reconstruct import ReconstructOptions, reconstruct_array
     from ..scenes import planar
     from ..simulate import simulate
@@ -23,7 +24,8 @@ def monte_carlo(point: dict, trials: int = 256, seed: int = 0, frequencies_hz=No
     p = complete_point(point)
     inst = point_instrument(p, frequencies_hz)
     side = max(2, int(math.ceil(math.sqrt(trials))))
-    effects = SENSOR_NOISE + (("range_falloff",) if p["range_falloff"] else ())
+    # the designed modulator's harmonics are part of what it designed: the truth has them
+    effects = SENSOR_NOISE + ("sidebands",) + (("range_falloff",) if p["range_falloff"] else ())
     scene = planar(p["distance_m"], p["reflectance"], effects=effects)
     frames = simulate(scene, inst, side, side, jax.random.key(seed))
     out = reconstruct_array(frames, inst, ReconstructOptions(method="ml", progress=False))

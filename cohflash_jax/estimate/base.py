@@ -90,9 +90,12 @@ class AbstractDepthEstimator(eqx.Module):
 
     `refines`: the estimator may move beyond the coarse stage's bin (a model fit). Its depths
     are then reflected into a mirror-symmetric sweep's window, and a pixel whose fit ran more
-    than two bins from the coarse depth is flagged out of range."""
+    than two bins from the coarse depth is flagged out of range. `edge_bins`: within this many
+    grid steps of either end of the depth window the estimator is biased by the tone's mirror
+    image (at −τ, and at P − τ beyond the far end); pixels there are flagged `edge_bias`."""
 
     refines: ClassVar[bool] = False
+    edge_bins: ClassVar[float] = 0.0
 
     @property
     def description(self) -> str:

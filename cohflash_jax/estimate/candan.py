@@ -11,14 +11,24 @@ has no complex bins, and there it reads the interpolated periodogram peak.
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
+import equinox as eqx
 import jax.numpy as jnp
 
 from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup
+from .peak import MIRROR_EDGE_BINS, peak_estimate, peak_sigma_m
 
 
 class CandanPeak(AbstractDepthEstimator):
-    """The DFT peak interpolated from its complex neighbours (Jacobsen–Candan)."""
+    """The DFT peak interpolated from its complex neighbours (Jacobsen–Candan). Measured with
+    random depths away from the window's ends (35–3000 frames, 16–30 dB): error spread
+    1.4–1.6× the frequency-only CRLB; bias ≤ 0.003 bin without sidebands, to 0.035 bin (rms
+    0.006) where sideband aliases fall near the peak at 35 frames."""
+
+    noise_factor: float = eqx.field(static=True, default=1.4)
+    bias_steps: float = eqx.field(static=True, default=0.006)
+    edge_bins: ClassVar[float] = MIRROR_EDGE_BINS
 
     @classmethod
     def build(cls, setup: EstimatorSetup) -> CandanPeak:
@@ -42,6 +52,6 @@ class CandanPeak(AbstractDepthEstimator):
             delta = jnp.clip(jacobsen * math.tan(math.pi / n) / (math.pi / n), -0.5, 0.5)
             depth = stage.geometry.depth_from_folded((peak + delta) / n)
         amplitude = stage.tone_amplitude(coarse)
-        sigma = stage.frequency_only_sigma(amplitude, noise_var)
-        finite = jnp.isfinite(depth)
-        return DepthEstimate(depth, amplitude, sigma, depth, jnp.ones_like(finite), finite, jnp.full(depth.shape, -1.0))
+        return peak_estimate(
+            depth, peak_sigma_m(stage, amplitude, noise_var, self.noise_factor, self.bias_steps), amplitude
+        )

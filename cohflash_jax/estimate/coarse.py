@@ -25,6 +25,7 @@ from jaxtyping import Array, Bool, Complex, Float, Int
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import crlb_frequency_only_m, frequency_only_sigma_m
 from ..geometry import SweepGeometry
+from .detection import Detection, delay_detection, uniform_detection, uniform_sums
 
 
 def unitary_rfft(seq: Float[Array, "N P"]) -> Complex[Array, "P K"]:
@@ -102,10 +103,15 @@ class AbstractCoarseStage(eqx.Module):
 
     geometry: eqx.AbstractVar[SweepGeometry]
     weights: eqx.AbstractVar[Float[Array, " K"]]  # sideband weights (the dominant one scales A)
+    detection: eqx.AbstractVar[Detection]  # the test of its ordinates against noise
 
     @abc.abstractmethod
     def __call__(self, sequence: Float[Array, "N P"]) -> CoarseSpectrum:
         """The spectrum of carrier-aligned sequences (N, P) and its peaks."""
+
+    @abc.abstractmethod
+    def detection_energy(self, coarse: CoarseSpectrum) -> Float[Array, "P G"]:
+        """The energies the detection test bounds, one per ordinate (`estimate.detection`)."""
 
     @abc.abstractmethod
     def depth(self, coarse: CoarseSpectrum, interpolate: bool) -> Float[Array, " P"]:
@@ -145,7 +151,17 @@ class UniformSpectrum(AbstractCoarseStage):
 
     geometry: SweepGeometry
     weights: Float[Array, " K"]
+    detection: Detection
     min_bin: int = eqx.field(static=True, default=1)
+
+    @classmethod
+    def of(cls, geometry: SweepGeometry, weights, min_bin: int, false_alarm: float) -> UniformSpectrum:
+        """The stage of a uniform sweep, its detection test over the bins it searches."""
+        detection = uniform_detection(geometry.num_frames, min_bin, false_alarm)
+        return cls(geometry, jnp.asarray(weights), detection, min_bin)
+
+    def detection_energy(self, coarse):
+        return uniform_sums(coarse.spectrum, self.geometry.num_frames)
 
     def __call__(self, sequence) -> CoarseSpectrum:
         spec = unitary_rfft(sequence)  # (P, K)
@@ -200,17 +216,16 @@ class DelayPeriodogram(AbstractCoarseStage):
 
     geometry: SweepGeometry
     weights: Float[Array, " K"]
+    detection: Detection
     frequencies_hz: Float[Array, " N"]
     depths_m: Float[Array, " G"]
 
     @classmethod
-    def of(cls, geometry: SweepGeometry, weights, frequencies_hz) -> DelayPeriodogram:
-        return cls(
-            geometry,
-            jnp.asarray(weights),
-            jnp.asarray(frequencies_hz),
-            jnp.asarray(delay_grid(frequencies_hz, geometry.depth_window_m)),
-        )
+    def of(cls, geometry: SweepGeometry, weights, frequencies_hz, false_alarm: float) -> DelayPeriodogram:
+        """The stage of a schedule, its detection test over every depth of its grid."""
+        depths = delay_grid(frequencies_hz, geometry.depth_window_m)
+        detection = delay_detection(frequencies_hz, geometry.system_delay_s + 2 * depths / C, false_alarm)
+        return cls(geometry, jnp.asarray(weights), detection, jnp.asarray(frequencies_hz), jnp.asarray(depths))
 
     def __call__(self, sequence) -> CoarseSpectrum:
         tau = self.geometry.system_delay_s + 2 * self.depths_m / C
@@ -219,6 +234,9 @@ class DelayPeriodogram(AbstractCoarseStage):
         centred = (sequence - jnp.mean(sequence, axis=0)).astype(jnp.float32)
         power = jnp.abs(centred.T.astype(jnp.complex64) @ basis) ** 2  # (P, G)
         return CoarseSpectrum(power, first_argmax(power))
+
+    def detection_energy(self, coarse):
+        return coarse.power
 
     def depth(self, coarse, interpolate):
         at_peak = self.depths_m[coarse.peak]

@@ -1,44 +1,79 @@
 """Depth read off the coarse stage's peak: at the grid point (`DFTPeak`) or interpolated
-between grid points (`InterpolatedPeak`). Amplitude from the peak's power; σ the
-frequency-only CRLB, the only information a peak's position carries."""
+between grid points (`InterpolatedPeak`). Amplitude from the peak's power.
+
+A read-out's error is not the frequency-only CRLB: the grid quantises it, an interpolation
+has its own bias, and magnitude-only interpolation does not reach the bound. σ is therefore
+√((k·σ_f)² + (b·grid step)²) with σ_f the frequency-only CRLB, k the estimator's measured
+noise factor and b its rms bias in grid steps (`peak_sigma_m`; docs/physics.md). Near the
+ends of the depth window the tone's mirror image pulls an interpolation by up to a whole bin
+(measured without noise, 35–350 frames: Jacobsen–Candan up to 1.0 bin within 1.75 bins of an
+end, the Gaussian 0.2–0.6 bin within 1.25 and ≤ 0.06 from 1.5); the nearest grid point stays
+within 0.75 bin everywhere.
+"""
 
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
+import equinox as eqx
 import jax.numpy as jnp
 
 from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup
 
+# Grid steps from either end of the window within which an interpolated peak is flagged
+MIRROR_EDGE_BINS = 2.0
 
-def _read_out(stage, coarse, noise_var, interpolate: bool) -> DepthEstimate:
+
+def peak_sigma_m(stage, amplitude, noise_var, noise_factor: float, bias_steps: float):
+    """√((k·σ_f)² + (b·step)²): a read-out's σ from its noise factor k and rms bias b."""
+    noise = noise_factor * stage.frequency_only_sigma(amplitude, noise_var)
+    return jnp.sqrt(noise**2 + (bias_steps * stage.grid_step_m) ** 2)
+
+
+def read_out(stage, coarse, noise_var, interpolate: bool, noise_factor: float, bias_steps: float) -> DepthEstimate:
+    """The peak's depth, amplitude and σ as a `DepthEstimate` (nothing iterates: converged)."""
     depth = stage.depth(coarse, interpolate=interpolate)
-    amplitude = stage.tone_amplitude(coarse)
-    sigma = stage.frequency_only_sigma(amplitude, noise_var)
-    if not interpolate:  # a grid point read off without interpolation is uniform within ±½ step
-        sigma = jnp.maximum(sigma, stage.grid_step_m / math.sqrt(12))
+    return peak_estimate(
+        depth,
+        peak_sigma_m(stage, stage.tone_amplitude(coarse), noise_var, noise_factor, bias_steps),
+        stage.tone_amplitude(coarse),
+    )
+
+
+def peak_estimate(depth, sigma, amplitude) -> DepthEstimate:
     finite = jnp.isfinite(depth)
     return DepthEstimate(depth, amplitude, sigma, depth, jnp.ones_like(finite), finite, jnp.full(depth.shape, -1.0))
 
 
 class DFTPeak(AbstractDepthEstimator):
-    """The strongest grid point's depth (a DFT bin, or a periodogram depth)."""
+    """The strongest grid point's depth (a DFT bin, or a periodogram depth): uniform within
+    ±½ step of the truth wherever the peak is the right one, so b = 1/√12."""
+
+    noise_factor: float = eqx.field(static=True, default=1.0)
+    bias_steps: float = eqx.field(static=True, default=1 / math.sqrt(12))
 
     @classmethod
     def build(cls, setup: EstimatorSetup) -> DFTPeak:
         return cls()
 
     def estimate(self, stage, coarse, sequence, noise_var) -> DepthEstimate:
-        return _read_out(stage, coarse, noise_var, interpolate=False)
+        return read_out(stage, coarse, noise_var, False, self.noise_factor, self.bias_steps)
 
 
 class InterpolatedPeak(AbstractDepthEstimator):
     """The peak interpolated between grid points: a Gaussian (log-power parabola) for a
-    uniform sweep's Hann spectrum, a power parabola for a periodogram."""
+    uniform sweep's Hann spectrum, a power parabola for a periodogram. Measured with random
+    depths away from the window's ends (35–3000 frames, 16–30 dB): error spread 1.8–2.0× the
+    frequency-only CRLB, and 0.012 bin rms bias without noise (to 0.05 bin with sidebands)."""
+
+    noise_factor: float = eqx.field(static=True, default=1.75)
+    bias_steps: float = eqx.field(static=True, default=0.012)
+    edge_bins: ClassVar[float] = MIRROR_EDGE_BINS
 
     @classmethod
     def build(cls, setup: EstimatorSetup) -> InterpolatedPeak:
         return cls()
 
     def estimate(self, stage, coarse, sequence, noise_var) -> DepthEstimate:
-        return _read_out(stage, coarse, noise_var, interpolate=True)
+        return read_out(stage, coarse, noise_var, True, self.noise_factor, self.bias_steps)

@@ -65,8 +65,9 @@ def initial_common_drift(i, q, window_frames: int = DRIFT_WINDOW_FRAMES) -> tupl
 
 # Survey statuses of pixels a calibration may use. dc_edge pixels are usable: through an
 # uncalibrated hybrid the untracked turbulent carrier makes the survey's mean term wander near
-# DC, which the calibration's drift model removes.
-USABLE_SURVEY_STATUS = (Status.OK, Status.DC_EDGE)
+# DC, which the calibration's drift model removes. edge_bias pixels are usable too: the survey's
+# peak read-out only seeds the ML fit, which has no mirror bias.
+USABLE_SURVEY_STATUS = (Status.OK, Status.DC_EDGE, Status.EDGE_BIAS)
 
 
 def _select_pixels(capture: Capture, max_pixels: int, snr_map: np.ndarray, status_map: np.ndarray):

@@ -80,6 +80,7 @@ def depth_meta(plan: TilePlan, options: ReconstructOptions, **extra) -> dict:
         "window_bins": options.window_bins,
         "dominant_harmonic": g.dominant_order,
         "frequency_path": frequency_path(plan),
+        "false_alarm": plan.coarse.detection.false_alarm,
         **extra,
     }
 

@@ -72,11 +72,11 @@ def build_plan(instrument: Instrument, options: ReconstructOptions, saturation_d
     geometry = SweepGeometry.of(f, weights, delay)
     model = UniformModel(float(f[0]), geometry.step_hz, jnp.asarray(weights), delay, num_frames=f.size)
     if geometry.uniform:
-        coarse = UniformSpectrum(geometry, model.weights, geometry.first_bin(options.min_depth_m))
+        coarse = UniformSpectrum.of(geometry, weights, geometry.first_bin(options.min_depth_m), options.false_alarm)
     else:
         if options.min_depth_m > 0:
             raise ValueError("min_depth_m applies to uniform sweeps only")
-        coarse = DelayPeriodogram.of(geometry, model.weights, f)
+        coarse = DelayPeriodogram.of(geometry, weights, f, options.false_alarm)
     setup = EstimatorSetup(f, geometry, model, options.window_bins, options.max_steps)
     iq_w, iq_b = hybrid.iq_matrix_dn(1.0)
     iq = IQStage(iq_w, iq_b, saturation_dn, options.dtype, options.tracking, options.track_window_frames)

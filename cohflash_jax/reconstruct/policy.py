@@ -10,6 +10,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ..estimate import METHODS
+from ..estimate.detection import DEFAULT_FALSE_ALARM
 from ..estimate.iq import DRIFT_WINDOW_FRAMES
 from ..status import Status
 
@@ -58,6 +59,7 @@ class ReconstructOptions:
     progress: bool = True
     min_depth_m: float = 0.0  # coarse search ignores shallower depths (slow drift / leakage lives near DC)
     max_fit_chi2: float = DEFAULT_MAX_FIT_CHI2  # ml: pixels whose fit is worse are flagged poor_fit
+    false_alarm: float = DEFAULT_FALSE_ALARM  # per pixel, under pure noise (`estimate.detection`); 1: no test
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -71,6 +73,10 @@ class ReconstructOptions:
         # NaN compares false: a NaN threshold would pass every pixel, a NaN χ² limit none
         if not math.isfinite(self.snr_threshold_db):
             raise ValueError(f"snr_threshold_db must be a finite number of dB, got {self.snr_threshold_db}")
+        if not (0 < self.false_alarm <= 1):
+            raise ValueError(
+                f"false_alarm must be a probability in (0, 1] (1: no detection test), got {self.false_alarm}"
+            )
         if not (self.max_fit_chi2 > 0):
             raise ValueError(f"max_fit_chi2 must be positive, got {self.max_fit_chi2}")
         if self.window_bins < 3 or self.max_steps < 1 or self.track_window_frames < 3:
@@ -94,7 +100,9 @@ def classify(
     depth,
     snr,
     *,
+    detected,
     out_of_range,
+    edge_bias,
     poor_fit,
     dc_edge,
     converged,
@@ -105,17 +113,20 @@ def classify(
     data_status=None,
 ):
     """Per-pixel `Status`: later conditions win, so the status names the most basic reason a
-    pixel is invalid (bad data before a failed fit before low SNR before a poor fit)."""
+    pixel is invalid (bad data before no detection before a failed fit before low SNR before a
+    poor fit)."""
     lo, hi = policy.valid_window_m
     out_of_range = (depth < lo) | (depth >= hi) | out_of_range
     status = jnp.full(depth.shape, Status.OK, jnp.int8)
     for cond, code in (
         (out_of_range, Status.OUT_OF_RANGE),
+        (edge_bias, Status.EDGE_BIAS),
         (poor_fit, Status.POOR_FIT),
         (dc_edge, Status.DC_EDGE),
         (~converged, Status.NOT_CONVERGED),
         (snr < policy.snr_threshold, Status.LOW_SNR),
         (~fit_ok, Status.FIT_FAILED),
+        (~detected, Status.NOT_DETECTED),
         (dead, Status.DEAD),
         (saturated, Status.SATURATED),
         (~finite, Status.BAD_DATA),

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from ..estimate.iq import carrier_axis, derotate, iq_from_frames, rotate_onto_axis, track_carrier_drift
+from ..fisher import reported_sigma_m
 from ..runtime import async_filter_jit
 from .plan import TilePlan
 from .policy import MAX_FIT_EXCURSION_BINS, classify
@@ -30,19 +31,20 @@ def process_tile(plan: TilePlan, frames, dark, data_status=None, gain=None, carr
     Three or four programs, dispatched asynchronously (none waits for its result)."""
     if frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES:
         i, q, flags = iq_and_checks(plan, frames, dark, gain, carrier_phase_rad)
-        c, s, noise_var = carrier_axis_program(i, q)
+        c, s, noise_var, total_var = carrier_axis_program(i, q)
     else:
-        i, q, (c, s, noise_var), flags = iq_and_carrier_axis(plan, frames, dark, gain, carrier_phase_rad)
-    return invert_sequence(plan, rotate_program(i, q, c, s), noise_var, flags, data_status)
+        i, q, (c, s, noise_var, total_var), flags = iq_and_carrier_axis(plan, frames, dark, gain, carrier_phase_rad)
+    return invert_sequence(plan, rotate_program(i, q, c, s), noise_var, total_var, flags, data_status)
 
 
 rotate_program = jax.jit(rotate_onto_axis)
 
 
 def _axis(i, q):
-    """`carrier_axis`'s cos φ, sin φ and noise variance (float64, as the estimators use it)."""
-    c, s, noise_var, _ = carrier_axis(i, q)
-    return c, s, noise_var.astype(jnp.float64)
+    """`carrier_axis`'s cos φ, sin φ, and the noise and total variances (float64, as the
+    estimators and the detection test use them)."""
+    axis = carrier_axis(i, q)
+    return axis.cos, axis.sin, axis.noise_var.astype(jnp.float64), axis.total_var.astype(jnp.float64)
 
 
 carrier_axis_program = jax.jit(_axis)
@@ -83,13 +85,15 @@ def iq_and_carrier_axis(plan: TilePlan, frames, dark, gain=None, carrier_phase_r
 
 
 @async_filter_jit
-def invert_sequence(plan: TilePlan, r, noise_var, flags, data_status=None):
+def invert_sequence(plan: TilePlan, r, noise_var, total_var, flags, data_status=None):
     """Depth, its σ, amplitude, SNR and status per pixel from the carrier-aligned sequence
-    r (N, P), the carrier axis's noise variance and the data flags (`iq_and_checks`): the
-    coarse stage, the plan's estimator, then `policy.classify`."""
+    r (N, P), the carrier axis's noise variance, the total I/Q variance and the data flags
+    (`iq_and_checks`): the coarse stage and its detection test, the plan's estimator, then
+    `policy.classify`."""
     dead, saturated, finite = flags
     n = r.shape[0]
     coarse = plan.coarse(r)
+    detection_ratio = plan.coarse.detection.ratio(plan.coarse.detection_energy(coarse), n * total_var)
     est = plan.estimator.estimate(plan.coarse, coarse, r, noise_var)
     depth, coarse_depth = est.depth_m, est.coarse_depth_m
     dc_edge = plan.coarse.dc_edge(coarse)
@@ -103,15 +107,20 @@ def invert_sequence(plan: TilePlan, r, noise_var, flags, data_status=None):
     depth = jnp.where(wandered | dc_edge, coarse_depth, depth)
     amplitude = est.amplitude
     snr = n * (amplitude * plan.model.weights[plan.geometry.dominant_order]) ** 2 / jnp.maximum(noise_var, 1e-30)
+    sigma = reported_sigma_m(est.sigma_m, n, snr)
+    start, end = plan.geometry.depth_window_m
+    edge_bias = jnp.minimum(depth - start, end - depth) < plan.estimator.edge_bins * plan.geometry.bin_depth_m
     status = classify(
         plan.policy,
         depth,
         snr,
         out_of_range=wandered,
+        edge_bias=edge_bias,
         poor_fit=est.fit_chi2 > plan.policy.max_fit_chi2,
         dc_edge=dc_edge,
         converged=est.converged,
         fit_ok=est.fit_ok,
+        detected=plan.coarse.detection.detected(detection_ratio),
         dead=dead,
         saturated=saturated,
         finite=finite,
@@ -121,10 +130,11 @@ def invert_sequence(plan: TilePlan, r, noise_var, flags, data_status=None):
     return {
         "depth_m": safe(depth),
         "amplitude": safe(amplitude),
-        "sigma_m": safe(est.sigma_m),
+        "sigma_m": safe(sigma),
         "snr": safe(snr),
         "fit_status": status,
         "valid": status == 0,
         "coarse_depth_m": safe(coarse_depth),
         "fit_chi2": safe(est.fit_chi2),
+        "detection_ratio": safe(detection_ratio),
     }
