@@ -28,6 +28,7 @@ class Status(enum.IntEnum):
     DC_EDGE = 10
     NOT_DETECTED = 11
     EDGE_BIAS = 12
+    AMBIGUOUS = 13
 
     @property
     def message(self) -> str:
@@ -58,6 +59,7 @@ _MESSAGES = {
     Status.DC_EDGE: "dc_edge (power rises towards DC: slow drift)",
     Status.NOT_DETECTED: "not_detected (no tone beyond what noise gives at the stated false-alarm rate)",
     Status.EDGE_BIAS: "edge_bias (a peak read-out near the window's ends, where the tone's mirror image biases it)",
+    Status.AMBIGUOUS: "ambiguous (another depth the model predicts fits the frames nearly as well)",
 }
 
 # pixels whose data cannot carry a fit or a posterior: the noise model does not hold there

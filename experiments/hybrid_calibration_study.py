@@ -75,7 +75,7 @@ def run(out: Path, size: int, seeds: int):
                         setup = CaptureSetup.of(cap, calib)
                         outputs = reconstruct_capture(
                             cap,
-                            ReconstructOptions(tracking=tracking, progress=False),
+                            ReconstructOptions(carrier="tracked" if tracking else "static", progress=False),
                             setup.instrument,
                             maps=setup.maps,
                         ).outputs

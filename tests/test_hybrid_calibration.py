@@ -297,7 +297,7 @@ def test_turbulence_uncalibrated_flagged_calibrated_valid(calibrations, instrume
         for calib in (None, full):
             setup = CaptureSetup.of(cap, calib)
             out = reconstruct_capture(
-                cap, ReconstructOptions(tracking=True, progress=False), setup.instrument, maps=setup.maps
+                cap, ReconstructOptions(carrier="tracked", progress=False), setup.instrument, maps=setup.maps
             ).outputs
             expected = 30.5 + (0.0 if calib is not None else PATH_OFFSET_M)
             wild = np.abs(out["depth_m"] - expected) > 5 * out["sigma_m"]

@@ -239,5 +239,6 @@ def test_status_codes_are_one_enumeration_with_the_documented_numbers():
         10: "dc_edge (power rises towards DC: slow drift)",
         11: "not_detected (no tone beyond what noise gives at the stated false-alarm rate)",
         12: "edge_bias (a peak read-out near the window's ends, where the tone's mirror image biases it)",
+        13: "ambiguous (another depth the model predicts fits the frames nearly as well)",
     }
     assert json.loads(cf.Status.table_json())["8"] == "outside_registration"

@@ -8,6 +8,7 @@ import numpy as np
 
 from ..estimate import METHODS
 from ..estimate.detection import DEFAULT_FALSE_ALARM
+from ..estimate.drift import CARRIER_ALIGNMENTS
 from ..reconstruct.policy import DEFAULT_MAX_FIT_CHI2, DEFAULT_SNR_THRESHOLD_DB, DEFAULT_TILE_ROWS, ReconstructOptions
 from ..status import Status
 from .common import HelpFormatter, add_quiet, provenance, range_mm
@@ -39,7 +40,14 @@ def add_parser(sub) -> None:
         help="coarse search ignores shallower depths (clutter near DC: drift, leakage)",
     )
     r.add_argument("--registration", help="four-CCD registration JSON from `cohflash calibrate registration`")
-    r.add_argument("--tracking", action="store_true", help="track a drifting carrier phase (turbulence)")
+    r.add_argument(
+        "--carrier",
+        choices=CARRIER_ALIGNMENTS,
+        default="auto",
+        help="carrier-phase alignment: auto (default) finds a drift common to the capture (turbulence) and "
+        "removes it, else aligns statically; static; tracked (follow each pixel's drift)",
+    )
+    r.add_argument("--tracking", action="store_true", help="the same as --carrier tracked")
     r.add_argument("--png", help="colour-mapped depth preview with a colour bar in mm")
     r.add_argument("--tiff", help="float32 depth TIFF in metres (NaN = invalid)")
     r.add_argument("--ply", help="point cloud of valid pixels")
@@ -123,8 +131,8 @@ def summary(outputs, meta) -> str:
     flagged = ", ".join(f"{Status(k).message} {c}" for k, c in enumerate(counts) if k and c)
     start, end = meta.get("depth_window_m", (0.0, meta["ambiguity_m"]))
     lines = [
-        f"method {meta['method']} ({meta['carrier_alignment']} carrier alignment); unambiguous depths "
-        f"[{start:.3f}, {end:.3f}) m; DFT bin {meta['bin_depth_m'] * 1e3:.2f} mm",
+        f"method {meta['method']}; carrier alignment {meta['carrier_alignment']} ({meta.get('carrier_reason', '')})",
+        f"unambiguous depths [{start:.3f}, {end:.3f}) m; DFT bin {meta['bin_depth_m'] * 1e3:.2f} mm",
         f"valid pixels {valid.sum()} / {valid.size} ({valid.mean():.1%})"
         + (f"; flagged: {flagged}" if flagged else ""),
     ]
@@ -142,7 +150,7 @@ def summary(outputs, meta) -> str:
 def options_from_args(args) -> ReconstructOptions:
     return ReconstructOptions(
         method=args.method,
-        tracking=args.tracking,
+        carrier="tracked" if args.tracking else args.carrier,
         tile_rows=args.tile_rows,
         snr_threshold_db=args.snr_threshold_db,
         false_alarm=args.false_alarm,

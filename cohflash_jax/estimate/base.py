@@ -14,6 +14,7 @@ import dataclasses
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
@@ -29,7 +30,8 @@ class DepthEstimate(eqx.Module):
     the CRLB-predicted standard deviation at the fitted values; `coarse_depth_m` the coarse
     stage's depth it started from; `converged` whether an iterative fit converged (always
     True for a direct read-out); `fit_ok` whether the answer is finite and well posed;
-    `fit_chi2` the reduced χ² of a fit (−1 where the estimator computes none)."""
+    `fit_chi2` the reduced χ² of a fit (−1 where the estimator computes none); `ambiguous`
+    where another depth the model predicts fits the frames nearly as well (None: not tested)."""
 
     depth_m: Float[Array, " P"]
     amplitude: Float[Array, " P"]
@@ -38,6 +40,7 @@ class DepthEstimate(eqx.Module):
     converged: Bool[Array, " P"]
     fit_ok: Bool[Array, " P"]
     fit_chi2: Float[Array, " P"]
+    ambiguous: Bool[Array, " P"] | None = None
 
 
 class FitResult(eqx.Module):
@@ -71,6 +74,38 @@ class FitResult(eqx.Module):
             self.finite_and_well_posed(),
             fit_chi2,
         )
+
+
+# The noise variance a reduced χ² divides by is floored at this fraction of the mean square
+# of the data: noiseless frames (tests, simulations) would otherwise give 0/0
+CHI2_NOISE_FLOOR = 1e-9
+
+
+def reduced_chi2(cost, noise_var, mean_square, dof):
+    """Residual sum of squares `cost` per degree of freedom in units of the noise variance
+    (floored at `CHI2_NOISE_FLOOR` × the data's `mean_square`)."""
+    return cost / (jnp.maximum(noise_var, jnp.maximum(CHI2_NOISE_FLOOR * mean_square, 1e-30)) * dof)
+
+
+# A rival depth is told apart from the fitted one only where the frames favour the fit by at
+# least this Δχ² (residual sums in units of the noise variance): a 5σ preference
+AMBIGUITY_MIN_DELTA_CHI2 = 25.0
+
+
+def best_of(fits: FitResult, noise_var, min_separation_m):
+    """Per pixel, the fit with the lowest residual among K started from rival depths (every
+    field of `fits` (K, P)), whether the choice is ambiguous — another fit that ended more than
+    `min_separation_m` away has a residual within `AMBIGUITY_MIN_DELTA_CHI2` noise variances —
+    and the index of the one taken (P,)."""
+    usable = fits.finite_and_well_posed() & jnp.isfinite(fits.cost)
+    cost = jnp.where(usable, fits.cost, jnp.inf)
+    best = jnp.argmin(cost, axis=0)
+    take = lambda a: jnp.take_along_axis(a, best[None], axis=0)[0]
+    chosen = jax.tree.map(take, fits)
+    delta = (cost - take(cost)[None]) / jnp.maximum(noise_var, 1e-30)[None]
+    apart = jnp.abs(fits.depth_m - chosen.depth_m[None]) > min_separation_m
+    ambiguous = jnp.any(usable & apart & (delta < AMBIGUITY_MIN_DELTA_CHI2), axis=0)
+    return chosen, ambiguous, best
 
 
 @dataclasses.dataclass(frozen=True)

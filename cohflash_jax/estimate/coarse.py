@@ -24,7 +24,7 @@ from jaxtyping import Array, Bool, Complex, Float, Int
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import crlb_frequency_only_m, frequency_only_sigma_m
-from ..geometry import SweepGeometry
+from ..geometry import POINTS_PER_ENVELOPE, SweepGeometry
 from .detection import Detection, delay_detection, uniform_detection, uniform_sums
 
 
@@ -203,7 +203,12 @@ class UniformSpectrum(AbstractCoarseStage):
         return (coarse.peak == self.min_bin) & (power[:, self.min_bin - 1] > power[:, self.min_bin])
 
 
-def delay_grid(frequencies_hz: np.ndarray, depth_window_m: tuple[float, float], points_per_envelope: int = 4):
+RIVAL_EXCLUSION_POINTS = 2 * POINTS_PER_ENVELOPE  # the main lobe and its first sidelobes
+
+
+def delay_grid(
+    frequencies_hz: np.ndarray, depth_window_m: tuple[float, float], points_per_envelope: int = POINTS_PER_ENVELOPE
+):
     """Depths (m) over the unambiguous window [max(0, start), end), spaced c/(2B)/points_per_envelope."""
     f = np.asarray(frequencies_hz, np.float64)
     envelope = C / (2 * (f[-1] - f[0]))
@@ -237,6 +242,18 @@ class DelayPeriodogram(AbstractCoarseStage):
 
     def detection_energy(self, coarse):
         return coarse.power
+
+    def candidates(self, coarse: CoarseSpectrum, count: int) -> Float[Array, "K P"]:
+        """Depths (m) of the peak and the next `count` − 1 strongest grid points, each beyond
+        ±2 envelope widths of those before it: the rivals a schedule's sidelobes offer (the
+        time-domain ML fits each, `TimeDomainML`)."""
+        g = jnp.arange(coarse.power.shape[-1])
+        power, peak, depths = coarse.power, coarse.peak, []
+        for _ in range(count):
+            depths.append(self.depth(CoarseSpectrum(power, peak), interpolate=True))
+            power = jnp.where(jnp.abs(g[None, :] - peak[:, None]) <= RIVAL_EXCLUSION_POINTS, -1.0, power)
+            peak = first_argmax(power)
+        return jnp.stack(depths)
 
     def depth(self, coarse, interpolate):
         at_peak = self.depths_m[coarse.peak]

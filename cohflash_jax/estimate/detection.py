@@ -162,12 +162,23 @@ def delay_moments(frequencies_hz: np.ndarray, delays_s: np.ndarray, chunk: int =
     """(‖v_g‖², mean(v_g), Σ v_g²) of v_g = e^{i2πf_mτ_g} (the periodogram's ordinates
     |Σ r_m e^{−i2πf_mτ_g}|² = |⟨r, v_g⟩|²), in chunks of delays (bounded memory)."""
     f = np.asarray(frequencies_hz, np.float64)
+    delays = np.asarray(delays_s, np.float64)
     n = f.size
-    mean = np.empty(len(delays_s), complex)
-    sum_sq = np.empty(len(delays_s), complex)
-    for g0 in range(0, len(delays_s), chunk):
-        cycles = np.outer(delays_s[g0 : g0 + chunk], f)
-        phase = 2 * math.pi * (cycles - np.floor(cycles))
-        mean[g0 : g0 + chunk] = np.exp(1j * phase).mean(axis=1)
-        sum_sq[g0 : g0 + chunk] = np.exp(2j * phase).sum(axis=1)
-    return np.full(len(delays_s), float(n)), mean, sum_sq
+    mean = np.empty(len(delays), complex)
+    sum_sq = np.empty(len(delays), complex)
+    phasor = lambda tau: np.exp(2j * math.pi * np.mod(np.multiply.outer(tau, f), 1.0))
+    steps = np.diff(delays)
+    # an evenly spaced grid (as `coarse.delay_grid` makes): each chunk's rows are its first row
+    # times powers of one step's phasor (a cumulative product: no exponential per entry)
+    even = steps.size > 0 and np.allclose(steps, steps[0], rtol=1e-12, atol=0.0)
+    step = phasor(steps[0]) if even else None
+    for g0 in range(0, len(delays), chunk):
+        count = min(chunk, len(delays) - g0)
+        if even:
+            powers = np.cumprod(np.broadcast_to(step, (count, n)), axis=0) / step
+            rows = phasor(delays[g0])[None] * powers
+        else:
+            rows = phasor(delays[g0 : g0 + count])
+        mean[g0 : g0 + count] = rows.mean(axis=1)
+        sum_sq[g0 : g0 + count] = (rows * rows).sum(axis=1)
+    return np.full(len(delays), float(n)), mean, sum_sq

@@ -31,7 +31,7 @@ from jaxtyping import Array, Float
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import depth_information, phase_locked_sigma_m, sigma_from_information, well_posed
-from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult
+from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult, reduced_chi2
 from .coarse import first_argmax
 from .polish import STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA, polish_depth
 from .window_ml import grid_for
@@ -297,7 +297,5 @@ class TableML(AbstractDepthEstimator):
         )
         # reduced χ² over the N frames less the three fitted unknowns (noise floored as the
         # window fit floors it)
-        n = sequence.shape[0]
-        floor = 1e-9 * jnp.mean(jnp.square(sequence.astype(jnp.float64)), axis=0)
-        chi2 = fit.cost / (jnp.maximum(noise_var, jnp.maximum(floor, 1e-30)) * (n - 3))
-        return fit.to_estimate(coarse_depth, chi2)
+        mean_square = jnp.mean(jnp.square(sequence.astype(jnp.float64)), axis=0)
+        return fit.to_estimate(coarse_depth, reduced_chi2(fit.cost, noise_var, mean_square, sequence.shape[0] - 3))

@@ -22,7 +22,7 @@ from jaxtyping import Array, Bool, Complex, Float, Int
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import depth_information, phase_locked_sigma_m, sigma_from_information, well_posed
-from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult
+from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult, reduced_chi2
 from .polish import STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA, descended, polish_depth
 from .window_model import Phasors, UniformModel, WindowData, WindowTables, bin_weights, shift_phasors, window_tables
 
@@ -368,6 +368,5 @@ class WindowML(AbstractDepthEstimator):
         # component; 2W real residuals less the three fitted unknowns (noise floored at 1e-9 of
         # the window's mean power: noiseless data have rounding-level residuals and a zero noise
         # estimate, which is not a misfit)
-        floor = 1e-9 * jnp.mean(jnp.abs(windows) ** 2, axis=-1)
-        chi2 = fit.cost / (0.5 * jnp.maximum(noise_var, jnp.maximum(floor, 1e-30)) * (2 * w - 3))
+        chi2 = reduced_chi2(fit.cost, 0.5 * noise_var, 0.5 * jnp.mean(jnp.abs(windows) ** 2, axis=-1), 2 * w - 3)
         return fit.to_estimate(coarse_depth, chi2)

@@ -11,57 +11,13 @@ import numpy as np
 
 from ..capture import Capture, CaptureError
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
-from ..estimate.iq import DRIFT_WINDOW_FRAMES, align_carrier_static, derotate, iq_from_frames, moving_average
+from ..estimate.drift import initial_common_drift
+from ..estimate.iq import align_carrier_static, derotate, iq_from_frames
 from ..hybrid import Hybrid
 from ..status import Status
 from .common import MIN_FRAMES, MIN_PIXELS, Estimate, tone_sequences
 from .hybrid_stage import common_carrier, fit_hybrid, fit_offsets, pixel_statistics
 from .modulator_stage import fit_modulator
-
-# A common drift is declared where the moving average's leading singular value stands this many
-# times above the pure-noise level and above the next one (nearly rank one over pixels), it
-# needs this many windows of frames, and its circle fit a relative radial spread below the limit
-DRIFT_DETECTION_FACTOR = 3.0
-DRIFT_MIN_WINDOWS = 4
-DRIFT_MAX_CIRCLE_SPREAD = 0.3
-
-
-def initial_common_drift(i, q, window_frames: int = DRIFT_WINDOW_FRAMES) -> tuple[np.ndarray, str]:
-    """First estimate of a carrier drift common to the pixels, without knowing their depths.
-
-    The moving average of Z = I + iQ keeps the mean term z_p·w_0·e^{iφ[m]} (the tone averages
-    out); minus its time mean, it is (nearly) rank one over pixels, so its leading left singular
-    vector is κ·(e^{iφ[m]} − c): a circle, fitted algebraically (Kåsa) to recover φ. Leakage of
-    common mode through an uncalibrated hybrid is constant and drops out with the mean.
-    Returns (φ (N,) zero-mean, description); φ = 0 when the data show no drift."""
-    z = np.asarray(i) + 1j * np.asarray(q)
-    n, p = z.shape
-    half = window_frames // 2
-    if n <= DRIFT_MIN_WINDOWS * window_frames:
-        return np.zeros(n), "too few frames to look for a carrier drift"
-    average = np.asarray(moving_average(jnp.asarray(z), window_frames))
-    # a pure-noise N×P matrix of entry variance v has a top singular value ≈ √v(√N + √P); the
-    # high-passed variance (tone included) over the window bounds v from above
-    noise_var = np.mean(np.abs(z - average) ** 2) / window_frames
-    m = average[half : n - half]  # the shrinking windows at the ends let the tone through
-    m = m - m.mean(axis=0)
-    u, sv, _ = np.linalg.svd(m, full_matrices=False)
-    floor = math.sqrt(noise_var) * (math.sqrt(m.shape[0]) + math.sqrt(p))
-    if sv.size < 2 or not (sv[0] > DRIFT_DETECTION_FACTOR * floor and sv[0] > DRIFT_DETECTION_FACTOR * sv[1]):
-        return np.zeros(n), "no common carrier drift detected"
-    lead = u[:, 0]
-    x, y = lead.real, lead.imag
-    design = np.stack([2 * x, 2 * y, np.ones_like(x)], 1)
-    (cx, cy, k), *_ = np.linalg.lstsq(design, x * x + y * y, rcond=None)
-    centre = cx + 1j * cy
-    radius = math.sqrt(max(k + abs(centre) ** 2, 0.0))
-    spread = np.std(np.abs(lead - centre) - radius) / max(radius, 1e-300)
-    if not (radius > 0 and spread < DRIFT_MAX_CIRCLE_SPREAD):
-        return np.zeros(z.shape[0]), f"carrier drift not resolved (circle fit spread {spread:.2f}): treated as static"
-    phi = np.unwrap(np.angle(lead - centre))
-    phi = np.concatenate([np.full(half, phi[0]), phi, np.full(n - half - phi.size, phi[-1])])
-    return phi - phi.mean(), f"common carrier drift found (rms {np.std(phi):.2f} rad)"
-
 
 # Survey statuses of pixels a calibration may use. dc_edge pixels are usable: through an
 # uncalibrated hybrid the untracked turbulent carrier makes the survey's mean term wander near
@@ -144,7 +100,8 @@ def calibrate_hybrid(
         dark = read_mean_frame(dark_path) if dark_path is not None else None
         if dark is not None and dark.shape != (4, h, w):
             raise CaptureError(f"{dark_path}: dark frame has shape {dark.shape}, the capture needs (4, {h}, {w})")
-        options = ReconstructOptions(method="interp", progress=progress)
+        # static: the calibration finds and fits the common drift itself, below
+        options = ReconstructOptions(method="interp", carrier="static", progress=progress)
         survey = reconstruct_capture(cap, options, instrument).outputs
         idx = _select_pixels(cap, max_pixels, survey["snr"], survey["fit_status"])
         frames = _gather(cap, idx)

@@ -14,6 +14,7 @@ from tqdm.auto import tqdm
 
 from ..calibration_file import Calibration, CaptureSetup, PixelMaps
 from ..capture import Capture, CaptureError
+from ..estimate.drift import CarrierAlignment, choose_carrier_alignment
 from ..instrument import Instrument
 from ..runtime import retain_freed_memory
 from .engine import BlockReader, TileDispatcher, sub_tile_pixels
@@ -58,22 +59,40 @@ def reconstruct_array(
         if arr is not None and np.shape(arr) != shape:
             raise ValueError(f"{name} must have shape {shape} to match frames {frames.shape}, got {np.shape(arr)}")
     maps.check_shape(h, w, "maps")
-    plan = build_plan(maps.apply(instrument), options, saturation_dn)
+    instrument = maps.apply(instrument)
     flat = lambda a: None if a is None else np.asarray(a, np.float32).reshape(4, h * w)
-    dispatcher = TileDispatcher(plan, sub_tile_pixels(h * w, n), carrier_phase_rad)
-    out = dispatcher.dispatch(frames.reshape(4, n, h * w), flat(maps.offset_dn), None, flat(maps.gain)).gather()
+    dark, gain = flat(maps.offset_dn), flat(maps.gain)
+    if carrier_phase_rad is not None:
+        alignment = CarrierAlignment("common", "given by the caller", np.asarray(carrier_phase_rad, np.float64))
+    else:
+        alignment = align_carrier(options, instrument, frames.reshape(4, n, h * w), dark, gain)
+    plan = build_plan(instrument, options, saturation_dn, tracking=alignment.tracking)
+    dispatcher = TileDispatcher(plan, sub_tile_pixels(h * w, n), alignment.phase_rad)
+    out = dispatcher.dispatch(frames.reshape(4, n, h * w), dark, None, gain).gather()
     return {k: v.reshape(h, w) for k, v in out.items()}
 
 
-def depth_meta(plan: TilePlan, options: ReconstructOptions, **extra) -> dict:
+def align_carrier(options: ReconstructOptions, instrument: Instrument, frames, dark=None, gain=None):
+    """The carrier alignment `options.carrier` asks for; for "auto" decided on `frames`
+    (4, N, P) in DN (`estimate.drift.choose_carrier_alignment`), with per-pixel `dark` and
+    `gain` (4, P) where known."""
+    if options.carrier != "auto":
+        return choose_carrier_alignment(options.carrier)
+    iq_w, iq_b = instrument.hybrid.iq_matrix_dn(1.0)
+    return choose_carrier_alignment("auto", frames, iq_w, iq_b, dark, gain)
+
+
+def depth_meta(plan: TilePlan, options: ReconstructOptions, alignment: CarrierAlignment, **extra) -> dict:
     """What a depth file records about how its depths were made."""
     g = plan.geometry
     return {
         "method": options.method,
-        "ambiguity_m": g.ambiguity_m,
+        "ambiguity_m": plan.ambiguity_m,
         "bin_depth_m": g.bin_depth_m,
-        "depth_window_m": list(g.valid_window_m),
-        "carrier_alignment": "tracked" if options.tracking else "static",
+        "depth_window_m": list(plan.policy.valid_window_m),
+        "carrier_alignment": alignment.mode,
+        "carrier_reason": alignment.reason,
+        "carrier_drift_rms_rad": alignment.drift_rms_rad,
         "snr_threshold_db": options.snr_threshold_db,
         "snr_threshold_effective_db": 10 * math.log10(plan.policy.snr_threshold),
         "dtype": options.dtype,
@@ -104,7 +123,7 @@ def reconstruct_capture(
     maps.check_shape(h, w, "per-pixel maps")
     # registered tiles arrive as float32 with saturation judged upstream on the source pixels
     saturation = None if registration_maps is not None else capture.saturation_dn
-    plan = build_plan(maps.apply(instrument), options, saturation)
+    instrument = maps.apply(instrument)
     rows = min(options.tile_rows, h)
     dark, gain = maps.offset_dn, maps.gain
     t0 = time.perf_counter()
@@ -142,18 +161,24 @@ def reconstruct_capture(
             outputs.setdefault(k, np.empty((h, w), arr.dtype))[r0:r1] = arr
         bar.update((r1 - r0) * w)
 
-    dispatcher = TileDispatcher(plan, sub_tile_pixels(rows * w, n))
+    # the first tile is read before the plan is made: "auto" carrier alignment looks at it
+    first = tile_inputs(0)
+    alignment = align_carrier(options, instrument, first[1], first[3], first[4])
+    plan = build_plan(instrument, options, saturation, tracking=alignment.tracking)
+    dispatcher = TileDispatcher(plan, sub_tile_pixels(rows * w, n), alignment.phase_rad)
     with tqdm(total=h * w, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True) as bar:
         pending = None
         for r0 in range(0, h, rows):
-            r1, block, data_status, d, g = tile_inputs(r0)
+            r1, block, data_status, d, g = first if r0 == 0 else tile_inputs(r0)
             # dispatched asynchronously: the next tile is read while this one computes
             tile = dispatcher.dispatch(block, d, data_status, g)
             if pending is not None:
                 collect(pending, bar)
             pending = (tile, r0, r1)
         collect(pending, bar)
-    meta = depth_meta(plan, options, seconds=time.perf_counter() - t0, registered=registration_maps is not None)
+    meta = depth_meta(
+        plan, options, alignment, seconds=time.perf_counter() - t0, registered=registration_maps is not None
+    )
     return Reconstruction(outputs, meta, instrument)
 
 

@@ -18,6 +18,7 @@ from ..estimate import (
     UniformSpectrum,
     choose_estimator,
 )
+from ..estimate.harmonics import HarmonicResolver, harmonic_note
 from ..estimate.window_model import UniformModel
 from ..geometry import SweepGeometry
 from ..instrument import Instrument
@@ -50,11 +51,28 @@ class TilePlan(eqx.Module):
     estimator: AbstractDepthEstimator
     policy: ValidityPolicy
     method: str = eqx.field(static=True)
+    harmonics: HarmonicResolver | None = None  # a starved fundamental (`estimate.harmonics`)
+
+    @property
+    def depth_window_m(self) -> tuple[float, float]:
+        """The unambiguous depths this plan states: the orders' common window where the
+        harmonics are resolved, else the dominant tone's."""
+        return self.geometry.depth_window_m if self.harmonics is None else self.harmonics.depth_window_m
+
+    @property
+    def ambiguity_m(self) -> float:
+        return self.geometry.ambiguity_m if self.harmonics is None else self.harmonics.ambiguity_m
 
 
-def build_plan(instrument: Instrument, options: ReconstructOptions, saturation_dn: float | None = None) -> TilePlan:
+def build_plan(
+    instrument: Instrument,
+    options: ReconstructOptions,
+    saturation_dn: float | None = None,
+    tracking: bool | None = None,
+) -> TilePlan:
     """The plan for reconstructing captures of `instrument` (as described: nominal or
-    calibrated) with `options`. `saturation_dn`: the DN that marks ADC saturation (None: no check)."""
+    calibrated) with `options`. `saturation_dn`: the DN that marks ADC saturation (None: no
+    check); `tracking`: follow each pixel's carrier drift (default: where `options.carrier` asks)."""
     f = np.asarray(instrument.sweep.frequencies_hz, np.float64)
     problem = frequency_problem(f)
     if problem:
@@ -79,12 +97,24 @@ def build_plan(instrument: Instrument, options: ReconstructOptions, saturation_d
         coarse = DelayPeriodogram.of(geometry, weights, f, options.false_alarm)
     setup = EstimatorSetup(f, geometry, model, options.window_bins, options.max_steps)
     iq_w, iq_b = hybrid.iq_matrix_dn(1.0)
-    iq = IQStage(iq_w, iq_b, saturation_dn, options.dtype, options.tracking, options.track_window_frames)
+    iq = IQStage(
+        iq_w,
+        iq_b,
+        saturation_dn,
+        options.dtype,
+        options.carrier == "tracked" if tracking is None else tracking,
+        options.track_window_frames,
+    )
     threshold = 10 ** (applied_snr_threshold_db(options.snr_threshold_db, f.size) / 10)
-    policy = ValidityPolicy(threshold, float(options.max_fit_chi2), geometry.valid_window_m)
-    return TilePlan(iq, model, geometry, coarse, choose_estimator(options.method, setup), policy, options.method)
+    estimator = choose_estimator(options.method, setup)
+    # a peak read-out states the dominant tone's window; the ML resolves the orders' common one
+    harmonics = HarmonicResolver.build(f, weights, geometry, options.max_steps) if estimator.refines else None
+    window = geometry.depth_window_m if harmonics is None else harmonics.depth_window_m
+    policy = ValidityPolicy(threshold, float(options.max_fit_chi2), (max(0.0, window[0]), window[1]))
+    return TilePlan(iq, model, geometry, coarse, estimator, policy, options.method, harmonics)
 
 
 def frequency_path(plan: TilePlan) -> str:
     """Which stages a plan runs, in words (recorded in the depth file)."""
-    return "; ".join(part for part in (plan.coarse.description, plan.estimator.description) if part)
+    parts = (plan.coarse.description, plan.estimator.description, harmonic_note(plan.harmonics))
+    return "; ".join(part for part in parts if part)

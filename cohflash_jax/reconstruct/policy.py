@@ -11,6 +11,7 @@ import jax.numpy as jnp
 
 from ..estimate import METHODS
 from ..estimate.detection import DEFAULT_FALSE_ALARM
+from ..estimate.drift import CARRIER_ALIGNMENTS
 from ..estimate.iq import DRIFT_WINDOW_FRAMES
 from ..status import Status
 
@@ -49,7 +50,7 @@ class ReconstructOptions:
     alignment, validity thresholds, the I/Q precision and streaming."""
 
     method: str = "ml"
-    tracking: bool = False
+    carrier: str = "auto"  # `estimate.drift.CARRIER_ALIGNMENTS`: auto, static or tracked
     track_window_frames: int = DEFAULT_TRACK_WINDOW_FRAMES
     tile_rows: int = DEFAULT_TILE_ROWS
     window_bins: int = DEFAULT_WINDOW_BINS
@@ -64,6 +65,8 @@ class ReconstructOptions:
     def __post_init__(self):
         if self.method not in METHODS:
             raise ValueError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
+        if self.carrier not in CARRIER_ALIGNMENTS:
+            raise ValueError(f"carrier must be one of {', '.join(CARRIER_ALIGNMENTS)}, got {self.carrier!r}")
         if self.dtype not in ("float32", "float64"):
             raise ValueError("dtype must be float32 or float64")
         if self.tile_rows < 1:
@@ -104,6 +107,7 @@ def classify(
     out_of_range,
     edge_bias,
     poor_fit,
+    ambiguous=None,
     dc_edge,
     converged,
     fit_ok,
@@ -121,6 +125,7 @@ def classify(
     for cond, code in (
         (out_of_range, Status.OUT_OF_RANGE),
         (edge_bias, Status.EDGE_BIAS),
+        (jnp.zeros(depth.shape, bool) if ambiguous is None else ambiguous, Status.AMBIGUOUS),
         (poor_fit, Status.POOR_FIT),
         (dc_edge, Status.DC_EDGE),
         (~converged, Status.NOT_CONVERGED),

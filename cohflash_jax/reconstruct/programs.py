@@ -95,9 +95,11 @@ def invert_sequence(plan: TilePlan, r, noise_var, total_var, flags, data_status=
     coarse = plan.coarse(r)
     detection_ratio = plan.coarse.detection.ratio(plan.coarse.detection_energy(coarse), n * total_var)
     est = plan.estimator.estimate(plan.coarse, coarse, r, noise_var)
+    if plan.harmonics is not None:  # a starved fundamental: every order picks the unfolding
+        est = plan.harmonics.resolve(est, r, noise_var)
     depth, coarse_depth = est.depth_m, est.coarse_depth_m
     dc_edge = plan.coarse.dc_edge(coarse)
-    if plan.estimator.refines:
+    if plan.estimator.refines and plan.harmonics is None:
         depth = plan.geometry.reflect(depth)
         # a fit that ran off (seen at ~7 dB: 1e14 m) is flagged out_of_range
         wandered = jnp.abs(depth - coarse_depth) > MAX_FIT_EXCURSION_BINS * plan.geometry.bin_depth_m
@@ -108,7 +110,7 @@ def invert_sequence(plan: TilePlan, r, noise_var, total_var, flags, data_status=
     amplitude = est.amplitude
     snr = n * (amplitude * plan.model.weights[plan.geometry.dominant_order]) ** 2 / jnp.maximum(noise_var, 1e-30)
     sigma = reported_sigma_m(est.sigma_m, n, snr)
-    start, end = plan.geometry.depth_window_m
+    start, end = plan.depth_window_m
     edge_bias = jnp.minimum(depth - start, end - depth) < plan.estimator.edge_bins * plan.geometry.bin_depth_m
     status = classify(
         plan.policy,
@@ -117,6 +119,7 @@ def invert_sequence(plan: TilePlan, r, noise_var, total_var, flags, data_status=
         out_of_range=wandered,
         edge_bias=edge_bias,
         poor_fit=est.fit_chi2 > plan.policy.max_fit_chi2,
+        ambiguous=est.ambiguous,
         dc_edge=dc_edge,
         converged=est.converged,
         fit_ok=est.fit_ok,

@@ -1,0 +1,144 @@
+"""A carrier drift common to the capture (turbulence in the common path): found from the data,
+without knowing the pixels' depths, and the choice of carrier alignment it implies.
+
+`--carrier auto` (the default) looks for such a drift in a sample of pixels before the
+reconstruction starts. Where one is found it is removed from every pixel (a phase estimated
+from many pixels, so each pixel's noise stays white and the detection test's null holds);
+otherwise each pixel is aligned statically. The depth file records which ran and why.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from .iq import DRIFT_WINDOW_FRAMES, iq_from_frames
+
+# A common drift is declared where the moving average's leading singular value stands this many
+# times above the pure-noise level and above the next one (nearly rank one over pixels), it
+# needs this many windows of frames, and its circle fit a relative radial spread below the limit
+DRIFT_DETECTION_FACTOR = 3.0
+DRIFT_MIN_WINDOWS = 4
+DRIFT_MAX_CIRCLE_SPREAD = 0.3
+
+
+def initial_common_drift(i, q, window_frames: int = DRIFT_WINDOW_FRAMES) -> tuple[np.ndarray, str]:
+    """First estimate of a carrier drift common to the pixels, without knowing their depths.
+
+    The moving average of Z = I + iQ keeps the mean term z_p·w_0·e^{iφ[m]} (the tone averages
+    out); minus its time mean, it is (nearly) rank one over pixels, so its leading left singular
+    vector is κ·(e^{iφ[m]} − c): a circle, fitted algebraically (Kåsa) to recover φ. Leakage of
+    common mode through an uncalibrated hybrid is constant and drops out with the mean.
+    Returns (φ (N,) zero-mean, description); φ = 0 when the data show no drift."""
+    z = np.asarray(i) + 1j * np.asarray(q)
+    n, p = z.shape
+    half = window_frames // 2
+    if n <= DRIFT_MIN_WINDOWS * window_frames:
+        return np.zeros(n), "too few frames to look for a carrier drift"
+    average = moving_average_host(z, window_frames)
+    # a pure-noise N×P matrix of entry variance v has a top singular value ≈ √v(√N + √P); the
+    # high-passed variance (tone included) over the window bounds v from above
+    noise_var = np.mean(np.abs(z - average) ** 2) / window_frames
+    m = average[half : n - half]  # the shrinking windows at the ends let the tone through
+    m = m - m.mean(axis=0)
+    u, sv = leading_singular_pairs(m)
+    floor = math.sqrt(noise_var) * (math.sqrt(m.shape[0]) + math.sqrt(p))
+    if sv.size < 2 or not (sv[0] > DRIFT_DETECTION_FACTOR * floor and sv[0] > DRIFT_DETECTION_FACTOR * sv[1]):
+        return np.zeros(n), "no common carrier drift detected"
+    lead = u[:, 0]
+    x, y = lead.real, lead.imag
+    design = np.stack([2 * x, 2 * y, np.ones_like(x)], 1)
+    (cx, cy, k), *_ = np.linalg.lstsq(design, x * x + y * y, rcond=None)
+    centre = cx + 1j * cy
+    radius = math.sqrt(max(k + abs(centre) ** 2, 0.0))
+    spread = np.std(np.abs(lead - centre) - radius) / max(radius, 1e-300)
+    if not (radius > 0 and spread < DRIFT_MAX_CIRCLE_SPREAD):
+        return np.zeros(z.shape[0]), f"carrier drift not resolved (circle fit spread {spread:.2f}): treated as static"
+    phi = np.unwrap(np.angle(lead - centre))
+    phi = np.concatenate([np.full(half, phi[0]), phi, np.full(n - half - phi.size, phi[-1])])
+    return phi - phi.mean(), f"common carrier drift found (rms {np.std(phi):.2f} rad)"
+
+
+def moving_average_host(x: np.ndarray, window: int) -> np.ndarray:
+    """`iq.moving_average` in NumPy, for the one-off host-side drift search (no compilation
+    in a fresh process)."""
+    n, half = x.shape[0], window // 2
+    c = np.concatenate([np.zeros_like(x[:1]), np.cumsum(x, axis=0)], axis=0)
+    idx = np.arange(n)
+    lo, hi = np.clip(idx - half, 0, n), np.clip(idx + half + 1, 0, n)
+    return (c[hi] - c[lo]) / (hi - lo).reshape((n,) + (1,) * (x.ndim - 1))
+
+
+def leading_singular_pairs(m: np.ndarray, count: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """The `count` largest singular values of m (T, P) and their left vectors, from the
+    eigenpairs of the P×P Gram matrix (cheaper than a full SVD for T ≫ P)."""
+    values, vectors = np.linalg.eigh(m.conj().T @ m)
+    order = np.argsort(values)[::-1][:count]
+    sv = np.sqrt(np.maximum(values[order], 0.0))
+    u = (m @ vectors[:, order]) / np.maximum(sv, 1e-300)
+    return u, sv
+
+
+CARRIER_ALIGNMENTS = ("auto", "static", "tracked")
+# Pixels of the first tile the automatic choice looks at: the strongest mean terms (echoes)
+DRIFT_SAMPLE_PIXELS = 256
+
+
+@dataclasses.dataclass(frozen=True)
+class CarrierAlignment:
+    """The carrier alignment a reconstruction runs: `mode` "static" (each pixel's own axis),
+    "tracked" (each pixel's drift followed) or "common" (a drift common to the capture,
+    `phase_rad` (N,), removed first), and why (`reason`, recorded in the depth file)."""
+
+    mode: str
+    reason: str
+    phase_rad: np.ndarray | None = None
+
+    @property
+    def tracking(self) -> bool:
+        return self.mode == "tracked"
+
+    @property
+    def drift_rms_rad(self) -> float:
+        return 0.0 if self.phase_rad is None else float(np.std(self.phase_rad))
+
+
+def choose_carrier_alignment(
+    requested: str, frames=None, iq_weights=None, iq_bias=None, dark=None, gain=None
+) -> CarrierAlignment:
+    """The alignment for `requested` ∈ `CARRIER_ALIGNMENTS`. For "auto", `frames` (4, N, P) in
+    DN — a sample of the capture, e.g. its first tile — are searched for a common drift
+    (`initial_common_drift`) in the `DRIFT_SAMPLE_PIXELS` pixels with the strongest mean term."""
+    if requested == "static":
+        return CarrierAlignment("static", "requested (--carrier static)")
+    if requested == "tracked":
+        return CarrierAlignment("tracked", "requested (--carrier tracked)")
+    if requested != "auto":
+        raise ValueError(f"carrier alignment must be one of {', '.join(CARRIER_ALIGNMENTS)}, got {requested!r}")
+    n = frames.shape[1]
+    if n <= DRIFT_MIN_WINDOWS * DRIFT_WINDOW_FRAMES:
+        return CarrierAlignment("static", f"auto: {n} frames are too few to look for a carrier drift")
+    # the strongest mean terms, from the frames' means (I/Q is linear in the frames)
+    means = np.mean(frames, axis=1, dtype=np.float64)[:, None]  # (4, 1, P)
+    pick = lambda a, idx: None if a is None else jnp.asarray(np.asarray(a, np.float32)[:, idx])
+    everywhere = slice(None)
+    i0, q0 = iq_from_frames(
+        jnp.asarray(means, jnp.float32), iq_weights, iq_bias, pick(dark, everywhere), pick(gain, everywhere)
+    )
+    with np.errstate(invalid="ignore"):  # a pixel with a NaN frame has a NaN mean: left out
+        strength = np.abs(np.asarray(i0[0], np.float64) + 1j * np.asarray(q0[0], np.float64))
+    strength = np.where(np.isfinite(strength), strength, -1.0)
+    keep = np.sort(np.argsort(-strength)[:DRIFT_SAMPLE_PIXELS])
+    keep = keep[strength[keep] >= 0]
+    if keep.size < 2:
+        return CarrierAlignment("static", "auto: too few finite pixels to look for a carrier drift")
+    x = jnp.asarray(np.asarray(frames[..., keep], np.float32))
+    i, q = iq_from_frames(x, iq_weights, iq_bias, pick(dark, keep), pick(gain, keep))
+    i, q = np.asarray(i, np.float64), np.asarray(q, np.float64)
+    phase, note = initial_common_drift(i, q)
+    if np.any(phase != 0):
+        return CarrierAlignment("common", f"auto: {note} in {keep.size} sample pixels; removed", phase)
+    return CarrierAlignment("static", f"auto: {note} in {keep.size} sample pixels")

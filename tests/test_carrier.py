@@ -1,0 +1,86 @@
+"""Carrier drift handled by default (`--carrier auto`): a drift common to the capture is found
+and removed, a static capture is aligned statically, the depth file says which ran and why,
+and a depth that comes from untracked drift is never valid."""
+
+import h5py
+import jax
+import numpy as np
+import pytest
+
+import cohflash_jax as cf
+from cohflash_jax.cli import main
+from cohflash_jax.reconstruct import ReconstructOptions, align_carrier, reconstruct_array
+
+from .independent_writer import Writer, random_walk_rad
+
+NOISE = ("shot_noise", "read_noise", "dark_current", "quantization")
+
+
+@pytest.fixture(scope="module")
+def turbulent():
+    """A 3000-frame planar capture whose carrier random-walks ~3 rad (simulator's turbulence),
+    and the same noise draws without drift."""
+    inst = cf.Instrument.paper(3000)
+    key = jax.random.key(7)
+    frames = {
+        name: cf.simulate(cf.planar(effects=NOISE + extra), inst, 16, 16, key)
+        for name, extra in (("static", ()), ("drift", ("turbulence",)))
+    }
+    return inst, frames
+
+
+def test_auto_removes_a_common_drift_without_a_flag(turbulent):
+    inst, frames = turbulent
+    err = {}
+    for name in ("static", "drift"):
+        out = reconstruct_array(frames[name], inst, ReconstructOptions(progress=False))
+        assert out["valid"].all(), name
+        err[name] = out["depth_m"] - 30.5
+        assert np.all(np.abs(err[name]) < 6 * out["sigma_m"])
+    assert np.std(err["drift"]) < 1.1 * np.std(err["static"])
+
+
+def test_untracked_drift_is_never_a_valid_depth(turbulent):
+    inst, frames = turbulent
+    out = reconstruct_array(frames["drift"], inst, ReconstructOptions(carrier="static", progress=False))
+    valid = out["valid"]
+    assert np.all(np.abs(out["depth_m"][valid] - 30.5) < 6 * out["sigma_m"][valid])
+
+
+def _meta(path):
+    with h5py.File(path) as f:
+        meta = dict(f.attrs)
+        return meta, f["depth_m"][()], f["valid"][()].astype(bool), f["sigma_m"][()]
+
+
+def test_independent_drifting_capture_reconstructs_by_default_and_says_why(tmp_path):
+    rng = np.random.default_rng(11)
+    writer = Writer(drift_rad=random_walk_rad(3000, 3.0, rng))
+    cap, out = tmp_path / "drift.h5", tmp_path / "depth.h5"
+    writer.write(cap, np.full((16, 16), 30.5), rng)
+    assert main(["reconstruct", str(cap), "--out", str(out), "--quiet"]) == 0
+    meta, depth, valid, sigma = _meta(out)
+    assert meta["carrier_alignment"] == "common"
+    assert "drift found" in meta["carrier_reason"]
+    assert valid.all()
+    assert np.std(depth - 30.5) < 1.3 * writer.crlb_m()
+    assert np.all(np.abs(depth - 30.5) < 6 * sigma)
+
+
+def test_auto_on_a_static_capture_aligns_statically(tmp_path):
+    rng = np.random.default_rng(12)
+    cap, out = tmp_path / "static.h5", tmp_path / "depth.h5"
+    Writer().write(cap, np.full((8, 8), 30.5), rng)
+    assert main(["reconstruct", str(cap), "--out", str(out), "--quiet"]) == 0
+    meta, *_ = _meta(out)
+    assert meta["carrier_alignment"] == "static"
+    assert "no common carrier drift" in meta["carrier_reason"]
+    assert main(["reconstruct", str(cap), "--out", str(out), "--quiet", "--carrier", "tracked"]) == 0
+    assert _meta(out)[0]["carrier_alignment"] == "tracked"
+
+
+def test_short_sweeps_align_statically_and_say_so():
+    inst = cf.Instrument.ten_hz_mode()
+    frames = cf.simulate(cf.planar(effects=NOISE), inst, 4, 4, jax.random.key(0))
+    alignment = align_carrier(ReconstructOptions(progress=False), inst, np.asarray(frames).reshape(4, 35, -1))
+    assert alignment.mode == "static" and "frames are too few" in alignment.reason
