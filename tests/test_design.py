@@ -275,6 +275,8 @@ def test_design_cli(small_design, tmp_path):
         "hybrid_calibration_study",
         "registration_synthetic",
         "detection",
+        "pulls",
+        "hard_cases",
     ],
 )
 def test_study_scripts_explain_themselves(study):
