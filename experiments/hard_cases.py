@@ -141,7 +141,14 @@ def simulate_case(case: HardCase, side: int, seed: int = 0) -> np.ndarray:
         )
         scene = dataclasses.replace(scene, settings=settings)
     frames = np.asarray(cf.simulate(scene, inst, side, side, jax.random.key(seed)))
-    return corrupt_frames(frames, float(inst.sensor.adc_max_dn)) if case.corrupt else frames
+    if case.corrupt:
+        return corrupt_frames(frames, float(inst.sensor.adc_max_dn))
+    return np.clip(np.rint(frames), 0, inst.sensor.adc_max_dn).astype(np.uint16)  # as a capture stores them
+
+
+def saturation_dn(case: HardCase) -> float:
+    """The ADC level a case's reconstruction checks, as a capture's `adc_bits` gives it."""
+    return float(instrument_for(case).sensor.adc_max_dn)
 
 
 def fold_into_window(depth_m: float, window_m: tuple[float, float]) -> float:
@@ -181,7 +188,7 @@ def run(out: Path, side: int, seed: int) -> list[dict]:
     rows = []
     for case in CASES:
         inst = instrument_for(case)
-        result = reconstruct_array(simulate_case(case, side, seed), inst, options, saturation_dn=inst.sensor.adc_max_dn)
+        result = reconstruct_array(simulate_case(case, side, seed), inst, options, saturation_dn=saturation_dn(case))
         row = {"case": case.name, "what": case.what, "truth_m": case.truth_m()}
         row.update(assess(result, case.truth_m(), stated_window_m(case, options)))
         rows.append(row)
