@@ -49,8 +49,19 @@ def write_depth(path, outputs: dict, meta: dict, provenance: dict) -> Path:
         f.attrs["provenance"] = json.dumps(provenance, default=str)
         for name, dtype in _DTYPES.items():
             if name in outputs:
-                f.create_dataset(name, data=np.asarray(outputs[name]).astype(dtype), compression="gzip")
+                f.create_dataset(name, data=stored_as(outputs[name], dtype), compression="gzip")
     return path
+
+
+def stored_as(values, dtype) -> np.ndarray:
+    """`values` in the file's dtype; floats beyond its range are clipped to its largest finite
+    value (a dead pixel's SNR over a zero noise estimate is finite in float64 but not in
+    float32: the file holds no inf)."""
+    a = np.asarray(values)
+    if np.issubdtype(dtype, np.floating) and np.issubdtype(a.dtype, np.floating):
+        top = float(np.finfo(dtype).max)
+        a = np.clip(a, -top, top)
+    return a.astype(dtype)
 
 
 def read_depth(path) -> tuple[dict, dict]:

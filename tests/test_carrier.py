@@ -23,7 +23,7 @@ def turbulent():
     inst = cf.Instrument.paper(3000)
     key = jax.random.key(7)
     frames = {
-        name: cf.simulate(cf.planar(effects=NOISE + extra), inst, 16, 16, key)
+        name: cf.simulate(cf.planar(effects=NOISE + extra), inst, 12, 12, key)
         for name, extra in (("static", ()), ("drift", ("turbulence",)))
     }
     return inst, frames
@@ -57,7 +57,7 @@ def test_independent_drifting_capture_reconstructs_by_default_and_says_why(tmp_p
     rng = np.random.default_rng(11)
     writer = Writer(drift_rad=random_walk_rad(3000, 3.0, rng))
     cap, out = tmp_path / "drift.h5", tmp_path / "depth.h5"
-    writer.write(cap, np.full((16, 16), 30.5), rng)
+    writer.write(cap, np.full((12, 12), 30.5), rng)
     assert main(["reconstruct", str(cap), "--out", str(out), "--quiet"]) == 0
     meta, depth, valid, sigma = _meta(out)
     assert meta["carrier_alignment"] == "common"
