@@ -15,7 +15,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from .iq import DRIFT_WINDOW_FRAMES, iq_from_frames
+from .iq import DRIFT_WINDOW_FRAMES, iq_from_frames, moving_average
 
 # A common drift is declared where the moving average's leading singular value stands this many
 # times above the pure-noise level and above the next one (nearly rank one over pixels), it
@@ -38,7 +38,7 @@ def initial_common_drift(i, q, window_frames: int = DRIFT_WINDOW_FRAMES) -> tupl
     half = window_frames // 2
     if n <= DRIFT_MIN_WINDOWS * window_frames:
         return np.zeros(n), "too few frames to look for a carrier drift"
-    average = moving_average_host(z, window_frames)
+    average = moving_average(z, window_frames)
     # a pure-noise N×P matrix of entry variance v has a top singular value ≈ √v(√N + √P); the
     # high-passed variance (tone included) over the window bounds v from above
     noise_var = np.mean(np.abs(z - average) ** 2) / window_frames
@@ -60,16 +60,6 @@ def initial_common_drift(i, q, window_frames: int = DRIFT_WINDOW_FRAMES) -> tupl
     phi = np.unwrap(np.angle(lead - centre))
     phi = np.concatenate([np.full(half, phi[0]), phi, np.full(n - half - phi.size, phi[-1])])
     return phi - phi.mean(), f"common carrier drift found (rms {np.std(phi):.2f} rad)"
-
-
-def moving_average_host(x: np.ndarray, window: int) -> np.ndarray:
-    """`iq.moving_average` in NumPy, for the one-off host-side drift search (no compilation
-    in a fresh process)."""
-    n, half = x.shape[0], window // 2
-    c = np.concatenate([np.zeros_like(x[:1]), np.cumsum(x, axis=0)], axis=0)
-    idx = np.arange(n)
-    lo, hi = np.clip(idx - half, 0, n), np.clip(idx + half + 1, 0, n)
-    return (c[hi] - c[lo]) / (hi - lo).reshape((n,) + (1,) * (x.ndim - 1))
 
 
 def leading_singular_pairs(m: np.ndarray, count: int = 2) -> tuple[np.ndarray, np.ndarray]:

@@ -18,15 +18,14 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..geometry import SweepGeometry, delay_window
-from .base import DepthEstimate, best_of, reduced_chi2
-from .time_domain import refine_time_domain
+from .base import DepthEstimate
+from .time_domain import TimeDomainML
 from .window_ml import grid_for
 
 # An order takes part in fixing the period where its weight is at least this share of the
@@ -56,16 +55,11 @@ class HarmonicResolver(eqx.Module):
     """The unfoldings of the dominant tone's depth over the orders' common window, each
     refined by the time-domain ML over all frames with every order, and the best kept."""
 
-    frequencies_hz: Float[Array, " N"]
-    weights: Float[Array, " K"]
-    system_delay_s: float = eqx.field(static=True)
+    fitter: TimeDomainML  # the time-domain ML with every order, over all frames
     dominant_period_s: float = eqx.field(static=True)
     dominant_order: int = eqx.field(static=True)
     depth_window_m: tuple[float, float] = eqx.field(static=True)
     readings: tuple[tuple[int, int, int], ...] = eqx.field(static=True)  # (order, m, ±1)
-    grid_half_width_m: float = eqx.field(static=True)
-    grid_points: int = eqx.field(static=True)
-    max_steps: int = eqx.field(static=True)
 
     @classmethod
     def build(cls, frequencies_hz, weights, geometry: SweepGeometry, max_steps: int) -> HarmonicResolver | None:
@@ -85,18 +79,15 @@ class HarmonicResolver(eqx.Module):
         step = 1 / (geometry.delay_period_s * geometry.dominant_order)
         top = int(math.ceil(window[1] * 2 / C * step * highest)) + 1
         readings = tuple((int(n), m, s) for n in present_orders(weights) for m in range(top + 1) for s in (1, -1))
-        return cls(
+        fitter = TimeDomainML(
             jnp.asarray(frequencies_hz, jnp.float64),
             jnp.asarray(weights, jnp.float64),
             geometry.system_delay_s,
-            geometry.delay_period_s,
-            geometry.dominant_order,
-            window,
-            readings,
             half,
             points,
             max_steps,
         )
+        return cls(fitter, geometry.delay_period_s, geometry.dominant_order, window, readings)
 
     @property
     def ambiguity_m(self) -> float:
@@ -105,45 +96,27 @@ class HarmonicResolver(eqx.Module):
     def candidates(self, depth_m: Float[Array, " P"]) -> tuple[Float[Array, "K P"], Array]:
         """Depths at which some present order's tone sits where the dominant tone of `depth_m`
         does (`readings`), and whether they lie in the common window."""
-        tau = self.system_delay_s + 2 * depth_m / C
+        delay = self.fitter.system_delay_s
+        tau = delay + 2 * depth_m / C
         step = 1 / (self.dominant_period_s * self.dominant_order)  # Δf
         folded = jnp.mod(self.dominant_order * step * tau, 1.0)  # cycles per frame of the peak
         order, m, sign = (jnp.asarray(v, jnp.float64)[:, None] for v in zip(*self.readings))
         delays = (m + sign * folded[None]) / (order * step)
-        depths = (delays - self.system_delay_s) * C / 2
+        depths = (delays - delay) * C / 2
         lo, hi = self.depth_window_m
         return depths, (depths >= lo) & (depths < hi)
 
     def resolve(self, estimate: DepthEstimate, sequence: Float[Array, "N P"], noise_var) -> DepthEstimate:
         """The estimator's answer with its depth replaced by the best unfolding's fit."""
         starts, inside = self.candidates(estimate.depth_m)
-
-        def fit_from(start):
-            return jax.vmap(
-                lambda r, d, v: refine_time_domain(
-                    r,
-                    self.frequencies_hz,
-                    self.weights,
-                    d,
-                    v,
-                    system_delay_s=self.system_delay_s,
-                    grid_half_width_m=self.grid_half_width_m,
-                    grid_points=self.grid_points,
-                    max_steps=self.max_steps,
-                )
-            )(sequence.T, start, noise_var)
-
-        fits = jax.vmap(fit_from)(starts)
+        fits = self.fitter.fit_each(sequence, starts, noise_var)
         fits = eqx.tree_at(lambda f: f.well_posed, fits, fits.well_posed & inside)
-        fit, ambiguous, best = best_of(fits, noise_var, self.grid_half_width_m)
-        mean_square = jnp.mean(jnp.square(sequence.astype(jnp.float64)), axis=0)
-        dof = max(sequence.shape[0] - 3, 1)
-        chi2 = reduced_chi2(fit.cost, noise_var, mean_square, dof)
+        resolved = self.fitter.best_fit(fits, starts, sequence, noise_var, self.fitter.grid_half_width_m)
         # where no reading explains the frames (the peak the coarse stage found was noise's, or
         # a reading was missed), the best one still leaves a residual no noise makes
-        unexplained = chi2 > 1 + UNEXPLAINED_CHI2_SIGMAS * math.sqrt(2 / dof) + UNEXPLAINED_CHI2_MARGIN
-        resolved = fit.to_estimate(jnp.take_along_axis(starts, best[None], axis=0)[0], chi2)
-        return eqx.tree_at(lambda e: e.ambiguous, resolved, ambiguous | unexplained, is_leaf=lambda x: x is None)
+        dof = max(sequence.shape[0] - 3, 1)
+        unexplained = resolved.fit_chi2 > 1 + UNEXPLAINED_CHI2_SIGMAS * math.sqrt(2 / dof) + UNEXPLAINED_CHI2_MARGIN
+        return eqx.tree_at(lambda e: e.ambiguous, resolved, resolved.ambiguous | unexplained)
 
 
 def harmonic_note(resolver: HarmonicResolver | None) -> str:

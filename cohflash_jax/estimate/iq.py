@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 
@@ -99,13 +100,16 @@ DRIFT_WINDOW_FRAMES = 101
 
 
 def moving_average(x: Array, window: int) -> Array:
-    """Centred moving average along axis 0 with a window shrinking at the ends."""
+    """Centred moving average along axis 0 with a window shrinking at the ends. A NumPy array
+    is averaged in NumPy (the one-off host-side drift search: no compilation in a fresh
+    process), anything else in JAX."""
+    xp = np if isinstance(x, np.ndarray) else jnp
     n = x.shape[0]
     half = window // 2
-    c = jnp.cumsum(jnp.concatenate([jnp.zeros_like(x[:1]), x], axis=0), axis=0)
-    idx = jnp.arange(n)
-    lo = jnp.clip(idx - half, 0, n)
-    hi = jnp.clip(idx + half + 1, 0, n)
+    c = xp.cumsum(xp.concatenate([xp.zeros_like(x[:1]), x], axis=0), axis=0)
+    idx = xp.arange(n)
+    lo = xp.clip(idx - half, 0, n)
+    hi = xp.clip(idx + half + 1, 0, n)
     count = (hi - lo).astype(x.real.dtype).reshape((n,) + (1,) * (x.ndim - 1))
     return (c[hi] - c[lo]) / count
 

@@ -129,6 +129,11 @@ class TimeDomainML(AbstractDepthEstimator):
         """Fits from the periodogram's peak and its strongest rivals beyond the main lobe
         (a schedule's sidelobes, where the frequency-only periodogram can favour a wrong
         depth): the best, flagged ambiguous where the frames barely prefer it (`base.best_of`)."""
+        starts = stage.candidates(coarse, self.candidates)  # (K, P), the peak first
+        return self.best_fit(self.fit_each(sequence, starts, noise_var), starts, sequence, noise_var, stage.grid_step_m)
+
+    def fit_each(self, sequence: Float[Array, "N P"], starts: Float[Array, "K P"], noise_var) -> FitResult:
+        """`refine_time_domain` of every pixel from each of its K starting depths → fields (K, P)."""
         fit_from = lambda start: jax.vmap(
             lambda r, d, v: refine_time_domain(
                 r,
@@ -142,11 +147,15 @@ class TimeDomainML(AbstractDepthEstimator):
                 max_steps=self.max_steps,
             )
         )(sequence.T, start, noise_var)
-        starts = stage.candidates(coarse, self.candidates)  # (K, P), the peak first
-        fits = jax.vmap(fit_from)(starts)
-        fit, ambiguous, best = best_of(fits, noise_var, stage.grid_step_m)
-        coarse_depth = jnp.take_along_axis(starts, best[None], axis=0)[0]
+        return jax.vmap(fit_from)(starts)
+
+    @staticmethod
+    def best_fit(fits: FitResult, starts, sequence, noise_var, min_separation_m) -> DepthEstimate:
+        """The best of `fits` (K, P) as a `DepthEstimate` started from its start, its reduced χ²
+        over all N frames (depth, offset and amplitude fitted), and `ambiguous` where another
+        fit ended more than `min_separation_m` away within `base.AMBIGUITY_MIN_DELTA_CHI2`."""
+        fit, ambiguous, best = best_of(fits, noise_var, min_separation_m)
         mean_square = jnp.mean(jnp.square(sequence.astype(jnp.float64)), axis=0)
-        dof = max(sequence.shape[0] - 3, 1)  # depth, offset and amplitude fitted
-        estimate = fit.to_estimate(coarse_depth, reduced_chi2(fit.cost, noise_var, mean_square, dof))
+        chi2 = reduced_chi2(fit.cost, noise_var, mean_square, max(sequence.shape[0] - 3, 1))
+        estimate = fit.to_estimate(jnp.take_along_axis(starts, best[None], axis=0)[0], chi2)
         return eqx.tree_at(lambda e: e.ambiguous, estimate, ambiguous, is_leaf=lambda x: x is None)
