@@ -47,7 +47,7 @@ def test_pulls_are_unit_normal_at_35_frames(snr_db):
     pulls = _pulls(cf.Instrument.ten_hz_mode(), snr_db, ("ml", "dft", "interp", "candan"), seed=int(snr_db))
     for method, p in pulls.items():
         assert np.all(np.abs(p) < 6), method
-        low = 0.7 if method == "dft" and snr_db < 20 else 0.9  # dft: conservative at threshold (docs)
+        low = 0.8 if method == "dft" and snr_db < 20 else 0.9  # dft: 0.87 here, below the 50 % point (docs)
         assert low < np.std(p) < 1.1, (method, np.std(p))
 
 

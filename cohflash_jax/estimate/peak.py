@@ -3,8 +3,9 @@ between grid points (`InterpolatedPeak`). Amplitude from the peak's power.
 
 A read-out's error is not the frequency-only CRLB: the grid quantises it, an interpolation
 has its own bias, and magnitude-only interpolation does not reach the bound. σ is therefore
-√((k·σ_f)² + (b·grid step)²) with σ_f the frequency-only CRLB, k the estimator's measured
-noise factor and b its rms bias in grid steps (`peak_sigma_m`; docs/physics.md). Near the
+√((k·σ_f)² + (b·grid step)²) for an interpolation, with σ_f the frequency-only CRLB, k the
+estimator's measured noise factor and b its rms bias in grid steps (`peak_sigma_m`); for the
+grid point, the pixel's own offset from the interpolated peak (`DFTPeak`; docs/physics.md). Near the
 ends of the depth window the tone's mirror image pulls an interpolation by up to a whole bin
 (measured without noise, 35–350 frames: Jacobsen–Candan up to 1.0 bin within 1.75 bins of an
 end, the Gaussian 0.2–0.6 bin within 1.25 and ≤ 0.06 from 1.5); the nearest grid point stays
@@ -23,6 +24,8 @@ from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup
 
 # Grid steps from either end of the window within which an interpolated peak is flagged
 MIRROR_EDGE_BINS = 2.0
+# The Gaussian interpolation's rms error without noise where sidebands are present (measured)
+SIDEBAND_INTERPOLATION_BIAS_STEPS = 0.05
 
 
 def peak_sigma_m(stage, amplitude, noise_var, noise_factor: float, bias_steps: float):
@@ -47,18 +50,32 @@ def peak_estimate(depth, sigma, amplitude) -> DepthEstimate:
 
 
 class DFTPeak(AbstractDepthEstimator):
-    """The strongest grid point's depth (a DFT bin, or a periodogram depth): uniform within
-    ±½ step of the truth wherever the peak is the right one, so b = 1/√12."""
+    """The strongest grid point's depth (a DFT bin, or a periodogram depth).
 
-    noise_factor: float = eqx.field(static=True, default=1.0)
-    bias_steps: float = eqx.field(static=True, default=1 / math.sqrt(12))
+    Its error is the pixel's own quantisation offset, not a uniform draw: near the detection
+    threshold the tones that pass sit nearer a bin's centre than uniform (scalloping lowers the
+    power of those near an edge), so the rms of ±½ step, 1/√12, overstated σ by ~1.35× there.
+    σ is instead the rms error given the data: the offset δ of the interpolated peak from the
+    grid point, with the interpolation's own σ, √(δ² + σ_interp²). Within `MIRROR_EDGE_BINS`
+    of either end of the grid the mirror image pulls the interpolation (module docstring), so
+    there δ is taken as uniform within ±½ step, rms 1/√12."""
 
     @classmethod
     def build(cls, setup: EstimatorSetup) -> DFTPeak:
         return cls()
 
     def estimate(self, stage, coarse, sequence, noise_var) -> DepthEstimate:
-        return read_out(stage, coarse, noise_var, False, self.noise_factor, self.bias_steps)
+        depth = stage.depth(coarse, interpolate=False)
+        amplitude = stage.tone_amplitude(coarse)
+        interpolation = InterpolatedPeak()
+        sigma_interp = peak_sigma_m(stage, amplitude, noise_var, interpolation.noise_factor, SIDEBAND_INTERPOLATION_BIAS_STEPS)
+        step = stage.grid_step_m
+        # a window that wraps between the two read-outs gives an offset near the window: cap at a step
+        offset = jnp.minimum(jnp.abs(stage.depth(coarse, interpolate=True) - depth), step)
+        grid_points = coarse.power.shape[-1]
+        near_end = jnp.minimum(coarse.peak, grid_points - 1 - coarse.peak) < MIRROR_EDGE_BINS
+        offset = jnp.where(near_end, step / math.sqrt(12), offset)
+        return peak_estimate(depth, jnp.maximum(offset, sigma_interp), amplitude)
 
 
 class InterpolatedPeak(AbstractDepthEstimator):
