@@ -202,6 +202,21 @@ class Registration:
             self.cameras[0], self.cameras[k], self.R[k - 1], self.T[k - 1], self.image_size, self.distance_mm
         )
 
+    def summary(self) -> dict:
+        """The poses this registration applies (CCDs 2–4 against CCD 1), for a result's provenance."""
+        return {
+            "working_distance_mm": self.distance_mm,
+            "relative_poses": [
+                {
+                    "ccd": k + 2,
+                    "rotation_deg": float(np.rad2deg(np.linalg.norm(cv2.Rodrigues(np.asarray(r))[0]))),
+                    "T_mm": np.asarray(t).ravel().tolist(),
+                    "stereo_rms_px": s,
+                }
+                for k, (r, t, s) in enumerate(zip(self.R, self.T, self.stereo_rms_px))
+            ],
+        }
+
     def to_json(self) -> dict:
         cam = lambda c: {
             "camera_matrix": c.camera_matrix.tolist(),
@@ -220,14 +235,7 @@ class Registration:
             "working_distance_mm": self.distance_mm,
             "cameras": [cam(c) for c in self.cameras],
             "relative_poses": [
-                {
-                    "ccd": k + 2,
-                    "R": np.asarray(r).tolist(),
-                    "T_mm": np.asarray(t).ravel().tolist(),
-                    "rotation_deg": float(np.rad2deg(np.linalg.norm(cv2.Rodrigues(np.asarray(r))[0]))),
-                    "stereo_rms_px": s,
-                }
-                for k, (r, t, s) in enumerate(zip(self.R, self.T, self.stereo_rms_px))
+                {"R": np.asarray(r).tolist()} | pose for r, pose in zip(self.R, self.summary()["relative_poses"])
             ],
             "xor_misalignment_before": self.xor_before,
             "xor_misalignment_after": self.xor_after,

@@ -27,6 +27,12 @@ FORMAT_VERSION = 1
 MAP_NAMES = ("offset_map_dn", "gain_map")
 
 
+# Plausibility bounds on a calibration's values: past them the file is wrong, not the instrument
+MAX_OFFSET_DN = 65535  # a 16-bit ADC's full scale
+MIN_RELATIVE_GAIN = 0.1  # a CCD 10× weaker or stronger than CCD 1 is a wiring fault, not a gain
+MAX_SYSTEM_DELAY_S = 1e-5  # 10 µs: 2 km of fibre
+
+
 def _value(entry):
     """A plain number, or the value of a {"value", "sigma"} entry (None when not identified)."""
     if isinstance(entry, dict):
@@ -76,6 +82,8 @@ class Calibration:
 
     @classmethod
     def from_document(cls, data: dict, source: str = "calibration", maps: dict | None = None) -> "Calibration":
+        if not isinstance(data, dict):
+            raise ValueError(f"{source}: a calibration is a JSON object, got a {type(data).__name__}")
         if data.get("format") != FORMAT:
             raise ValueError(f"{source}: format is {data.get('format')!r}, expected {FORMAT!r}")
         version = data.get("format_version", FORMAT_VERSION)
@@ -98,8 +106,17 @@ class Calibration:
             for name in ("phases_rad", "relative_gains", "offsets_dn"):
                 if not np.all(np.isfinite(np.asarray(getattr(hybrid, name), float))):
                     raise ValueError(f"{source}: hybrid {name} contains NaN or inf")
-            if min(hybrid.relative_gains) <= 0:
-                raise ValueError(f"{source}: hybrid relative_gains must be positive, got {hybrid.relative_gains}")
+            gains = np.asarray(hybrid.relative_gains)
+            if np.any(gains < MIN_RELATIVE_GAIN) or np.any(gains > 1 / MIN_RELATIVE_GAIN):
+                raise ValueError(
+                    f"{source}: hybrid relative_gains {hybrid.relative_gains} are implausible: each CCD's gain "
+                    f"relative to CCD 1 must lie in [{MIN_RELATIVE_GAIN}, {1 / MIN_RELATIVE_GAIN:g}]"
+                )
+            if np.any(np.abs(hybrid.offsets_dn) > MAX_OFFSET_DN):
+                raise ValueError(
+                    f"{source}: hybrid offsets_dn {hybrid.offsets_dn} are implausible: beyond ±{MAX_OFFSET_DN} DN, "
+                    "the range of a 16-bit ADC"
+                )
         else:
             notes.append("hybrid not identified in the calibration: nominal hybrid used")
         mod = data.get("modulator")
@@ -128,6 +145,11 @@ class Calibration:
             delay = math.nan
         if not math.isfinite(delay):
             raise ValueError(f"{source}: system_delay_s must be a finite number of seconds, got {delay!r}")
+        if abs(delay) > MAX_SYSTEM_DELAY_S:
+            raise ValueError(
+                f"{source}: system_delay_s {delay:g} s is implausible: beyond ±{MAX_SYSTEM_DELAY_S:g} s "
+                f"({MAX_SYSTEM_DELAY_S * 2e8 / 1e3:g} km of fibre)"
+            )
         if modulator is not None and not all(
             math.isfinite(v) for v in (modulator.modulation_index, modulator.bias_rad)
         ):
@@ -136,6 +158,8 @@ class Calibration:
         for name, arr in maps.items():
             if arr.ndim != 3 or arr.shape[0] != 4 or not np.all(np.isfinite(arr)):
                 raise ValueError(f"{source}: map {name} must be a finite (4, H, W) array, got shape {arr.shape}")
+            if name == "offset_map_dn" and np.any(np.abs(arr) > MAX_OFFSET_DN):
+                raise ValueError(f"{source}: map {name} holds offsets beyond ±{MAX_OFFSET_DN} DN (a 16-bit ADC)")
         gain = maps.get("gain_map")
         if gain is not None and np.any(gain <= 0):
             raise ValueError(f"{source}: gain_map has {int((gain <= 0).sum())} values ≤ 0")
@@ -159,6 +183,22 @@ class Calibration:
                 raise ValueError(f"{path}: the 'document' attribute is not valid JSON ({exc})") from None
             return cls.from_document(data, str(path), maps)
         return cls.from_document(read_json(path, "calibration"), str(path))
+
+    def values(self) -> dict:
+        """The values this calibration applies (None: the capture's own is kept), for a
+        result's provenance."""
+        hyb, mod = self.hybrid, self.modulator
+        return {
+            "hybrid_phases_rad": None if hyb is None else [float(v) for v in hyb.phases_rad],
+            "hybrid_relative_gains": None if hyb is None else [float(v) for v in hyb.relative_gains],
+            "hybrid_offsets_dn": None if hyb is None else [float(v) for v in hyb.offsets_dn],
+            "system_delay_s": self.system_delay_s,
+            "modulation_index": None if mod is None else float(mod.modulation_index),
+            "bias_rad": None if mod is None else float(mod.bias_rad),
+            "offset_map": self.offset_map_dn is not None,
+            "gain_map": self.gain_map is not None,
+            "notes": list(self.notes),
+        }
 
     def apply(self, instrument: Instrument) -> Instrument:
         """The calibrated instrument: `instrument` (a capture's nominal one,

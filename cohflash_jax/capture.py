@@ -165,8 +165,10 @@ class Capture:
         if f.attrs.get("format") != FORMAT_NAME:
             self._fail(f"attribute format is {f.attrs.get('format')!r}, expected {FORMAT_NAME!r}")
         version = f.attrs.get("format_version")
-        if version is None or int(version) != FORMAT_VERSION:
-            shown = version if version is None else np.asarray(version).item()
+        if version is None:
+            self._fail(f"attribute format_version is missing (this reader knows version {FORMAT_VERSION})")
+        shown = np.asarray(version).tolist()
+        if np.ndim(version) != 0 or not isinstance(shown, int | float) or shown != FORMAT_VERSION:
             self._fail(f"format_version {shown!r} is not supported (this reader knows version {FORMAT_VERSION})")
         for k in REQUIRED_ATTRS:
             if k not in f.attrs:
@@ -256,6 +258,12 @@ class Capture:
     def truth(self, name: str) -> np.ndarray | None:
         g = self._file.get("truth")
         return None if g is None or name not in g else g[name][()]
+
+    @property
+    def truth_names(self) -> list[str]:
+        """The truth datasets a simulated capture carries (none for a real one)."""
+        g = self._file.get("truth")
+        return [] if g is None else sorted(g)
 
     @property
     def truth_attrs(self) -> dict:

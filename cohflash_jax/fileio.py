@@ -1,34 +1,129 @@
-"""File helpers: atomic writing (temporary file beside the target, then rename), JSON reading
-with clear errors, figures."""
+"""File helpers: atomic writing (temporary file beside the target, then rename) of one file or
+of a command's whole set of outputs, JSON reading with clear errors, figures."""
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
+import glob
 import os
 from pathlib import Path
 
 
 def require_output_folders(*paths) -> None:
-    """FileNotFoundError naming the first output path (None skipped) whose folder does not exist."""
+    """Before any work: each output path (None skipped) is a file name in an existing folder
+    this process may write in (FileNotFoundError or PermissionError naming it otherwise)."""
     for path in paths:
-        if path is not None and not Path(path).parent.exists():
-            raise FileNotFoundError(f"output folder does not exist: {Path(path).parent}")
+        if path is None:
+            continue
+        path = Path(path)
+        if not path.parent.is_dir():
+            raise FileNotFoundError(f"output folder does not exist: {path.parent}")
+        if path.is_dir():
+            raise IsADirectoryError(f"output {path} is a folder: give a file name in it")
+        if not os.access(path.parent, os.W_OK | os.X_OK):
+            raise PermissionError(f"output folder {path.parent} is not writable (for {path.name})")
+
+
+class OutputSet:
+    """The outputs of one command, written as a set: inside `with OutputSet():` every
+    `atomic_path` writes its temporary file and the renames onto the targets wait for the
+    block to end without an exception. An error or Ctrl-C anywhere leaves every previous
+    output as it was (a new depth.h5 beside an old PNG is a mixed set); Ctrl-C during the
+    renames themselves is held until they finish."""
+
+    def __init__(self):
+        self._pending: list[tuple[Path, Path]] = []
+        self._token = None
+
+    def add(self, tmp: Path, path: Path) -> None:
+        self._pending.append((tmp, path))
+
+    def __enter__(self) -> OutputSet:
+        self._token = _ACTIVE_SET.set(self)
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        _ACTIVE_SET.reset(self._token)
+        if exc_type is None:
+            with _interrupts_held():
+                for tmp, path in self._pending:
+                    os.replace(tmp, path)
+        for tmp, _ in self._pending:
+            tmp.unlink(missing_ok=True)
+
+
+_ACTIVE_SET: contextvars.ContextVar[OutputSet | None] = contextvars.ContextVar("output_set", default=None)
+
+
+@contextlib.contextmanager
+def _interrupts_held():
+    """SIGINT held (and then dropped: the work it would stop is done) while files are renamed."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def temporary_name(path: Path, pid: int | None = None) -> Path:
+    """The temporary file beside `path` that a process writes before renaming: .NAME.tmp-PID."""
+    return path.with_name(f".{path.name}.tmp-{os.getpid() if pid is None else pid}")
+
+
+def remove_stale_temporaries(path) -> list[Path]:
+    """Remove the temporaries beside `path` left by processes that no longer run (a killed
+    run's .NAME.tmp-PID can hold gigabytes) → the files removed."""
+    path = Path(path)
+    removed = []
+    for tmp in path.parent.glob(f".{glob.escape(path.name)}.tmp-*"):
+        pid = tmp.name.rsplit("-", 1)[-1]
+        if not pid.isdigit() or int(pid) == os.getpid() or _alive(int(pid)):
+            continue
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+            removed.append(tmp)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 @contextlib.contextmanager
 def atomic_path(path):
-    """Yield a temporary path in the target's folder; rename it onto `path` on success.
+    """Yield a temporary path in the target's folder; rename it onto `path` on success (at the
+    end of the enclosing `OutputSet`, where there is one).
 
     On any exception the temporary file is removed and an existing `path` is untouched,
     so an interrupted run never leaves a half-written file."""
     path = Path(path)
     require_output_folders(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    remove_stale_temporaries(path)
+    tmp = temporary_name(path)
+    outputs = _ACTIVE_SET.get()
+    handed_on = False
     try:
         yield tmp
-        os.replace(tmp, path)
+        if outputs is None:
+            os.replace(tmp, path)
+        else:
+            outputs.add(tmp, path)
+            handed_on = True
     finally:
-        if tmp.exists():
+        if not handed_on and tmp.exists():
             tmp.unlink()
 
 

@@ -135,6 +135,14 @@ def phase_locked_sigma_m(sum_angular_frequency_sq, tone_amplitude, noise_var):
     return C / 2 / (0.5 * tone_amplitude**2 * sum_angular_frequency_sq / noise_var) ** 0.5
 
 
+def crlb_at_unit_snr_m(frequencies_hz, order: int = 1) -> float:
+    """The phase-locked CRLB (m) of a pixel whose tone has SNR N·(A·w)²/σ² = 1, the SNR a
+    depth file records; a pixel's CRLB is this over √snr, whatever estimator ran: with a = 2·A·w
+    the tone's amplitude, a²/(2σ²)·Σ(2π·k·f_m)² = 2·snr/N·Σ(2π·k·f_m)² for order k."""
+    f = np.asarray(frequencies_hz, np.float64)
+    return float(C / 2 / np.sqrt(2 / f.size * np.sum((2 * np.pi * order * f) ** 2)))
+
+
 def crlb_phase_locked_m(frequencies_hz, tone_amplitude, noise_sigma) -> float:
     """Closed-form CRLB (m) of depth for r = c + a·cos(2π f_m τ) + white noise of std σ, when
     the tone's phase is locked to τ (uses all f_m)."""

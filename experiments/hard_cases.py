@@ -35,8 +35,8 @@ J1_FIRST_ZERO = 3.8317
 
 @dataclasses.dataclass(frozen=True)
 class HardCase:
-    """One case: the sweep (`frames` uniform steps from 0.1 GHz at the paper's band, or a
-    named `schedule`), the modulator (β, θ_b), the target's depth as a fraction of the
+    """One case: the sweep (`frames` uniform steps over `band_hz`, the paper's 0.1–6 GHz by
+    default, or a named `schedule`), the modulator (β, θ_b), the target's depth as a fraction of the
     unambiguous window of the fundamental, c/(4Δf) (or in metres, `depth_m`), the echo's
     power relative to the paper's (`echo_scale`; 0: pure noise), a common carrier random walk
     of about `drift_rad` over the sweep, and whether bad pixels are written in (`corrupt`)."""
@@ -45,6 +45,7 @@ class HardCase:
     what: str
     frames: int = 3000
     schedule: str = "uniform"
+    band_hz: tuple[float, float] = (0.1e9, 6e9)
     beta: float = 2.0
     bias_rad: float = math.pi / 4
     window_fraction: float | None = None
@@ -54,13 +55,14 @@ class HardCase:
     corrupt: bool = False
 
     def frequencies_hz(self) -> np.ndarray:
-        """The sweep: uniform over 0.1–6 GHz in `frames` steps, or a seeded random schedule."""
+        """The sweep: uniform over the band in `frames` steps, or a seeded random schedule."""
+        low, high = self.band_hz
         if self.schedule == "random":
             rng = np.random.default_rng(1900)
-            f = np.sort(rng.uniform(0.1e9, 6e9, self.frames))
-            f[0], f[-1] = 0.1e9, 6e9
+            f = np.sort(rng.uniform(low, high, self.frames))
+            f[0], f[-1] = low, high
             return f
-        return 0.1e9 + 5.9e9 / (self.frames - 1) * np.arange(self.frames)
+        return low + (high - low) / (self.frames - 1) * np.arange(self.frames)
 
     def fundamental_window_m(self) -> float:
         f = self.frequencies_hz()
@@ -101,6 +103,8 @@ CASES = (
     ),
     HardCase("x → 0", "β = 0.02: almost no signal", beta=0.02),
     HardCase("10 Hz mode", "35 frames", frames=35, window_fraction=0.37),
+    HardCase("long sweep", "30 000 frames", frames=30000, depth_m=123.4),
+    HardCase("30 GHz, 240 m", "24–30 GHz, tone phase ~3·10⁵ rad", band_hz=(24e9, 30e9), depth_m=240.0),
     HardCase("random schedule", "300 random steps", frames=300, schedule="random", depth_m=11.3),
     HardCase("carrier drift", "≈3 rad random walk of the carrier", drift_rad=3.0),
     HardCase("bad pixels", "saturated, dead, NaN, constant and hot pixels", corrupt=True),

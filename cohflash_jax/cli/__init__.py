@@ -5,13 +5,18 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
+from ..fileio import OutputSet
 from ..runtime import enable_compilation_cache, use_cpu_streams
-from . import calibrate, demo, design, reconstruct, scenes, simulate, sweep, uncertainty
+from . import calibrate, demo, design, info, reconstruct, scenes, simulate, sweep, uncertainty
 from .common import check_output_paths
 from .reconstruct import run_reconstruct, summary
 
-COMMANDS = (demo, simulate, reconstruct, calibrate, sweep, design, uncertainty, scenes)
+COMMANDS = (demo, simulate, reconstruct, calibrate, sweep, design, uncertainty, info, scenes)
+# commands whose files are committed as they go: the sweep's checkpoint after every chunk of
+# points, the demo's capture (which it then reads); every other command's outputs form one set
+WRITES_AS_IT_GOES = ("sweep", "demo")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -35,7 +40,10 @@ def main(argv=None) -> int:
     use_cpu_streams()
     try:
         check_output_paths(args)
-        return args.func(args)
+        if args.command in WRITES_AS_IT_GOES:
+            return args.func(args)
+        with OutputSet():  # every output of the command renamed into place together, at the end
+            return args.func(args)
     except BrokenPipeError:  # e.g. `cohflash scenes | head` (before OSError, of which it is one)
         sys.stderr.close()
         return 0
@@ -43,12 +51,14 @@ def main(argv=None) -> int:
         print(f"cohflash {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        if args.command == "sweep":
+        if args.command == "sweep" and Path(args.out).exists():
             print(
                 f"interrupted; the finished points are in {args.out}: rerun the same command to resume", file=sys.stderr
             )
+        elif args.command == "sweep":
+            print(f"interrupted before the first points finished; {args.out} was not written", file=sys.stderr)
         else:
-            print("interrupted; no partial output was kept", file=sys.stderr)
+            print("interrupted; nothing was written (files from earlier runs are as they were)", file=sys.stderr)
         return 130
 
 

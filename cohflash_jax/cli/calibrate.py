@@ -7,7 +7,7 @@ import sys
 
 import numpy as np
 
-from .common import HelpFormatter, add_quiet
+from .common import HelpFormatter, add_quiet, number_in
 
 DEFAULT_MAX_PIXELS = 1024
 
@@ -28,12 +28,14 @@ def add_parser(sub) -> None:
         help="one folder of chessboard images per CCD; a view is the same file name in every folder",
     )
     cr.add_argument("--board", required=True, help="inner corners COLSxROWS, e.g. 9x6")
-    cr.add_argument("--square-mm", type=float, required=True, help="chessboard square size (mm)")
+    cr.add_argument(
+        "--square-mm", type=number_in(0, 1e4, "square size (mm)"), required=True, help="chessboard square size (mm)"
+    )
     cr.add_argument("--out", required=True, help="registration JSON to write")
     cr.add_argument("--report", help="report figure (PNG): corners, per-view errors, XOR images")
     cr.add_argument(
         "--distance-mm",
-        type=float,
+        type=number_in(0, 1e8, "working distance (mm)"),
         default=None,
         help="working distance for the pixel maps (default: median board distance)",
     )
@@ -56,9 +58,17 @@ def add_parser(sub) -> None:
         "--flat", help="flat-field capture (reference only, echo blocked; needs --dark): per-pixel relative gain maps"
     )
     ch.add_argument(
-        "--known-distance-m", type=float, default=None, help="target distance; without it τ_sys is not identifiable"
+        "--known-distance-m",
+        type=number_in(0, 1e5, "known distance (m)"),
+        default=None,
+        help="target distance; without it τ_sys is not identifiable",
     )
-    ch.add_argument("--max-pixels", type=int, default=DEFAULT_MAX_PIXELS, help="strongest valid pixels used")
+    ch.add_argument(
+        "--max-pixels",
+        type=number_in(1, 10**9, "maximum pixels", False, True),
+        default=DEFAULT_MAX_PIXELS,
+        help="strongest valid pixels used",
+    )
     ch.add_argument("--report", help="report figure (PNG): I/Q before/after, tone taper, drift")
     add_quiet(ch)
     ch.set_defaults(func=run_hybrid)

@@ -22,6 +22,26 @@ class HelpFormatter(argparse.HelpFormatter):
         return f"{text} (default: {shown})"
 
 
+def number_in(low: float, high: float, what: str, low_open: bool = True, integer: bool = False):
+    """An argparse type: a number in (low, high] (or [low, high] with `low_open` False) whose
+    error says what the option is and what it must be."""
+
+    def parse(text: str):
+        try:
+            value = int(text) if integer else float(text)
+        except ValueError:
+            kind = "a whole number" if integer else "a number"
+            raise argparse.ArgumentTypeError(f"{what} must be {kind}, got {text!r}") from None
+        above = value > low if low_open else value >= low
+        if not (above and value <= high):  # NaN fails both
+            bracket = "(" if low_open else "["
+            raise argparse.ArgumentTypeError(f"{what} must lie in {bracket}{low:g}, {high:g}], got {text}")
+        return value
+
+    parse.__name__ = what  # argparse names the type in some messages
+    return parse
+
+
 def size(text: str) -> tuple[int, int]:
     try:
         h, w = (int(v) for v in text.lower().split("x"))
@@ -110,22 +130,56 @@ def check_output_paths(args) -> None:
         seen[where] = name
 
 
-def provenance(path: Path, options) -> dict:
-    """What a result file records of its input and how it was made."""
+# Files up to this size are hashed whole; larger ones (captures of gigabytes) by their first and
+# last MiB with the size, so the record costs milliseconds, not a second pass over the frames
+FULL_HASH_MAX_BYTES = 64 * 2**20
+HASH_SAMPLE_BYTES = 2**20
+
+
+def file_record(path) -> dict:
+    """A file an output depended on: absolute path, size, modification time and a SHA-256."""
+    import hashlib
+
+    path = Path(path)
+    st = path.stat()
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        if st.st_size <= FULL_HASH_MAX_BYTES:
+            for block in iter(lambda: fh.read(HASH_SAMPLE_BYTES), b""):
+                digest.update(block)
+            kind = "sha256"
+        else:
+            digest.update(fh.read(HASH_SAMPLE_BYTES))
+            fh.seek(-HASH_SAMPLE_BYTES, 2)
+            digest.update(fh.read(HASH_SAMPLE_BYTES))
+            kind = "sha256_first_and_last_mib"
+    return {
+        "path": str(path.resolve()),
+        "size_bytes": st.st_size,
+        "mtime": st.st_mtime,
+        kind: digest.hexdigest(),
+    }
+
+
+def provenance(path: Path, options, applied: dict | None = None) -> dict:
+    """What a result file records of its inputs and how it was made: the capture (`path`) and
+    every other file `applied` ({role: path}; None skipped), each as a `file_record`."""
     import dataclasses
 
     import jax
 
     from .. import __version__
 
-    st = Path(path).stat()
+    capture = file_record(path)
+    files = {role: file_record(p) for role, p in (applied or {}).items() if p is not None}
     # the device too: CPU and GPU results agree to ~1e-6 mm, not bit for bit
     return {
-        "input": str(Path(path).resolve()),
-        "input_size_bytes": st.st_size,
-        "input_mtime": st.st_mtime,
+        "input": capture["path"],
+        "input_size_bytes": capture["size_bytes"],
+        "input_mtime": capture["mtime"],
+        "inputs": {"capture": capture} | files,
         "cohflash_version": __version__,
         "jax_version": jax.__version__,
         "jax_device": str(jax.devices()[0]),
-        "options": dataclasses.asdict(options),
+        "options": dataclasses.asdict(options) if dataclasses.is_dataclass(options) else options,
     }

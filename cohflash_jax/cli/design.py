@@ -7,7 +7,7 @@ import json
 
 from ..design.problem import DesignProblem
 from ..radiometry import PAPER_DISTANCE_M, PAPER_PROBE_POWER_W, PAPER_REFLECTANCE
-from .common import HelpFormatter, add_quiet
+from .common import HelpFormatter, add_quiet, number_in
 
 DEFAULT_MAX_FRAMES = 8192
 DEFAULT_MAX_FREQUENCY_GHZ = 6.0
@@ -21,25 +21,54 @@ def add_parser(sub) -> None:
         "precision under range, power and frequency limits, validated by Monte Carlo",
         formatter_class=HelpFormatter,
     )
-    de.add_argument("--target-precision-mm", type=float, required=True, help="depth precision (1σ) to reach")
-    de.add_argument("--max-range-m", type=float, required=True, help="required unambiguous range")
-    de.add_argument("--distance-m", type=float, default=PAPER_DISTANCE_M, help="target distance the precision is for")
-    de.add_argument("--reflectance", type=float, default=PAPER_REFLECTANCE, help="target reflectance (0–1)")
-    de.add_argument("--max-power-mw", type=float, default=PAPER_PROBE_POWER_W * 1e3, help="probe power limit")
-    de.add_argument("--frame-rate-hz", type=float, default=DesignProblem.frame_rate_hz, help="camera frame rate")
+    de.add_argument(
+        "--target-precision-mm",
+        type=number_in(0, 1e4, "target precision (mm)"),
+        required=True,
+        help="depth precision (1σ) to reach",
+    )
+    de.add_argument(
+        "--max-range-m", type=number_in(0, 1e5, "maximum range (m)"), required=True, help="required unambiguous range"
+    )
+    de.add_argument(
+        "--distance-m",
+        type=number_in(0, 1e5, "distance (m)"),
+        default=PAPER_DISTANCE_M,
+        help="target distance the precision is for",
+    )
+    de.add_argument(
+        "--reflectance", type=number_in(0, 1, "reflectance"), default=PAPER_REFLECTANCE, help="target reflectance (0–1)"
+    )
+    de.add_argument(
+        "--max-power-mw",
+        type=number_in(0, 1e6, "probe power (mW)"),
+        default=PAPER_PROBE_POWER_W * 1e3,
+        help="probe power limit",
+    )
+    de.add_argument(
+        "--frame-rate-hz",
+        type=number_in(0, 1e6, "frame rate (Hz)"),
+        default=DesignProblem.frame_rate_hz,
+        help="camera frame rate",
+    )
     de.add_argument(
         "--min-frequency-ghz",
-        type=float,
+        type=number_in(0, 1e3, "minimum frequency (GHz)"),
         default=DesignProblem.min_frequency_hz / 1e9,
         help="lowest microwave frequency (hardware)",
     )
     de.add_argument(
         "--max-frequency-ghz",
-        type=float,
+        type=number_in(0, 1e3, "maximum frequency (GHz)"),
         default=DEFAULT_MAX_FREQUENCY_GHZ,
         help="highest microwave frequency (hardware)",
     )
-    de.add_argument("--max-frames", type=int, default=DEFAULT_MAX_FRAMES, help="longest acquisition considered")
+    de.add_argument(
+        "--max-frames",
+        type=number_in(2, 10**7, "maximum frames", False, True),
+        default=DEFAULT_MAX_FRAMES,
+        help="longest acquisition considered",
+    )
     de.add_argument(
         "--schedule",
         choices=("uniform", "both"),
@@ -48,7 +77,7 @@ def add_parser(sub) -> None:
     )
     de.add_argument(
         "--validate-trials",
-        type=int,
+        type=number_in(0, 10**7, "validation trials", False, True),
         default=DEFAULT_VALIDATE_TRIALS,
         help="Monte Carlo pixels at the optimum (0: skip)",
     )

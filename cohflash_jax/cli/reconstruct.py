@@ -11,7 +11,7 @@ from ..estimate.detection import DEFAULT_FALSE_ALARM
 from ..estimate.drift import CARRIER_ALIGNMENTS
 from ..reconstruct.policy import DEFAULT_MAX_FIT_CHI2, DEFAULT_SNR_THRESHOLD_DB, DEFAULT_TILE_ROWS, ReconstructOptions
 from ..status import Status
-from .common import HelpFormatter, add_quiet, provenance, range_mm
+from .common import HelpFormatter, add_quiet, number_in, provenance, range_mm
 
 
 def add_parser(sub) -> None:
@@ -29,13 +29,13 @@ def add_parser(sub) -> None:
     r.add_argument("--calibration", help="calibration file (.json or .h5) from `cohflash calibrate hybrid`")
     r.add_argument(
         "--max-fit-chi2",
-        type=float,
+        type=number_in(0, 1e12, "χ² limit"),
         default=DEFAULT_MAX_FIT_CHI2,
         help="ml: flag pixels whose fit has a larger reduced χ² (status 9, poor_fit)",
     )
     r.add_argument(
         "--min-depth-m",
-        type=float,
+        type=number_in(0, 1e6, "minimum depth (m)", False),
         default=0.0,
         help="coarse search ignores shallower depths (clutter near DC: drift, leakage)",
     )
@@ -59,20 +59,20 @@ def add_parser(sub) -> None:
     )
     r.add_argument(
         "--tile-rows",
-        type=int,
+        type=number_in(1, 10**6, "tile rows", False, True),
         default=DEFAULT_TILE_ROWS,
         help="rows per streamed tile (memory vs speed; 32 matches the chunking cohflash writes)",
     )
     r.add_argument(
         "--snr-threshold-db",
-        type=float,
+        type=number_in(-100, 100, "SNR threshold (dB)", False),
         default=DEFAULT_SNR_THRESHOLD_DB,
         help="validity threshold on the peak-bin SNR (raised by 10·log10(1/(1 − √(2/(N−1)))) for the "
         "noise estimate's error from N frames)",
     )
     r.add_argument(
         "--false-alarm",
-        type=float,
+        type=number_in(0, 1, "false-alarm probability"),
         default=DEFAULT_FALSE_ALARM,
         help="probability per pixel that pure noise is detected as a tone (the detection test; 1 switches it off)",
     )
@@ -105,7 +105,8 @@ def run_reconstruct(
     with Capture(capture_path) as cap:
         result = open_and_reconstruct(capture_path, options, calibration, registration, capture=cap)
     outputs, meta = result.outputs, result.meta
-    write_depth(out, outputs, meta, provenance(capture_path, options))
+    applied = {"calibration": calibration, "registration": registration}
+    write_depth(out, outputs, meta, provenance(capture_path, options, applied))
     if png:
         save_preview_png(
             png,
@@ -138,10 +139,14 @@ def summary(outputs, meta) -> str:
     ]
     if valid.any():
         d = outputs["depth_m"][valid]
-        lines.append(
-            f"depth {d.min():.4f} … {d.max():.4f} m; median predicted σ "
+        line = (
+            f"depth {d.min():.4f} … {d.max():.4f} m; median σ ({meta['method']}'s own) "
             f"{np.median(outputs['sigma_m'][valid]) * 1e3:.3f} mm"
         )
+        if "crlb_at_unit_snr_m" in meta:  # the bound at each pixel's SNR: the same for every method
+            crlb = meta["crlb_at_unit_snr_m"] / np.sqrt(np.maximum(outputs["snr"][valid], 1e-30))
+            line += f"; median CRLB (phase-locked, any method) {np.median(crlb) * 1e3:.3f} mm"
+        lines.append(line)
     lines += [f"note: {n}" for n in json.loads(meta.get("notes", "[]"))]
     lines.append(f"reconstruction {meta['seconds']:.2f} s")
     return "\n".join(lines)

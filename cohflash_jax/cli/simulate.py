@@ -6,7 +6,7 @@ import time
 
 from ..instrument import Instrument
 from ..sweep import FrequencySweep
-from .common import HelpFormatter, add_quiet, size, steps
+from .common import HelpFormatter, add_quiet, number_in, size, steps
 
 DEFAULT_SIZE = (256, 320)
 
@@ -27,9 +27,40 @@ def add_parser(sub) -> None:
         help="scene 'file': reflectance map (.npy in [0,1], or image: "
         "value / the dtype's full scale, e.g. /255 for 8-bit)",
     )
-    s.add_argument("--depth-scale-m", type=float, default=1.0, help="metres per image unit of --depth-map")
+    s.add_argument(
+        "--depth-scale-m",
+        type=number_in(0, 1e6, "depth scale (m per unit)"),
+        default=1.0,
+        help="metres per image unit of --depth-map",
+    )
     add_quiet(s)
     s.set_defaults(func=run)
+
+
+# The simulator holds a scene's per-pixel returns (delays, amplitudes, speckle, per-CCD terms)
+# in float64 while it streams frames: about this many bytes a pixel at most
+SIMULATOR_BYTES_PER_PIXEL = 512
+
+
+def check_capture_fits(out, height: int, width: int, frames: int, uint16: bool) -> None:
+    """Before any work: the capture fits on the output's disk and the scene in memory."""
+    import os
+    import shutil
+    from pathlib import Path
+
+    need = 4 * frames * height * width * (2 if uint16 else 4)
+    free = shutil.disk_usage(Path(out).resolve().parent).free
+    if need > free:
+        raise ValueError(
+            f"--size {height}x{width} with {frames} steps makes a {need / 1e9:.3g} GB capture; "
+            f"{free / 1e9:.3g} GB are free in {Path(out).resolve().parent}"
+        )
+    memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    if height * width * SIMULATOR_BYTES_PER_PIXEL > memory:
+        raise ValueError(
+            f"--size {height}x{width} needs about {height * width * SIMULATOR_BYTES_PER_PIXEL / 1e9:.3g} GB of "
+            f"memory to simulate; this machine has {memory / 1e9:.3g} GB"
+        )
 
 
 def scene_from_args(args):
@@ -50,6 +81,7 @@ def run(args) -> int:
     scene = scene_from_args(args)
     effects = scene.effects if args.effects is None else parse_effects(args.effects)
     h, w = args.size
+    check_capture_fits(args.out, h, w, args.steps, "quantization" in effects)
     inst = Instrument(sweep=FrequencySweep.paper(args.steps))
     t0 = time.perf_counter()
     path = simulate_to_file(args.out, scene, inst, h, w, seed=args.seed, effects=effects, progress=not args.quiet)

@@ -7,7 +7,7 @@ import numpy as np
 
 from ..design.grid import DEFAULT_CHUNK_POINTS
 from ..design.parameters import PARAMETERS
-from .common import HelpFormatter, add_quiet
+from .common import HelpFormatter, add_quiet, number_in
 
 DEFAULT_MC_TRIALS = 256
 
@@ -30,7 +30,10 @@ def add_parser(sub) -> None:
     sw.add_argument("--mc", action="append", metavar="NAME=VALUE,…", help="grid point that also gets a Monte Carlo run")
     sw.add_argument("--mc-all", action="store_true", help="Monte Carlo at every grid point")
     sw.add_argument(
-        "--mc-trials", type=int, default=DEFAULT_MC_TRIALS, help="pixels (independent trials) per Monte Carlo point"
+        "--mc-trials",
+        type=number_in(1, 10**8, "Monte Carlo trials", False, True),
+        default=DEFAULT_MC_TRIALS,
+        help="pixels (independent trials) per Monte Carlo point",
     )
     sw.add_argument(
         "--workers",
@@ -68,6 +71,7 @@ def assignments(items) -> dict:
 
 def run(args) -> int:
     from ..design import parse_axis, plot_sweep, run_sweep
+    from ..design.plots import beyond_ambiguity
 
     axes = [parse_axis(a) for a in args.axis]
     mc_points = [assignments([m]) for m in args.mc or []]
@@ -86,12 +90,18 @@ def run(args) -> int:
         plot_sweep(rows, names, args.plot)
     crlb = np.array([float(r["crlb_mm"]) for r in rows])
     print(f"wrote {args.out}: {len(rows)} points over {', '.join(names)}; CRLB {crlb.min():.4g} … {crlb.max():.4g} mm")
+    beyond = beyond_ambiguity(rows)
+    if beyond.any():
+        print(
+            f"  {int(beyond.sum())} of {len(rows)} points put the target beyond the unambiguous range "
+            "(column beyond_ambiguity): the instrument reads their depth folded into it"
+        )
     for r in rows:
-        if "mc_trials" in r:
+        if r.get("mc_trials") not in (None, ""):
             where = ", ".join(f"{n}={float(r[n]):g}" for n in names)
             print(
                 f"  Monte Carlo at {where}: {float(r['mc_precision_mm']):.4g} mm over {int(r['mc_trials'])} pixels "
                 f"(CRLB {float(r['crlb_mm']):.4g} mm, bias {float(r['mc_bias_mm']):+.3g} mm, "
-                f"valid {float(r['mc_valid_fraction']):.0%})"
+                f"valid {float(r['mc_valid_fraction']):.0%})" + (f"; {r['mc_note']}" if r.get("mc_note") else "")
             )
     return 0

@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import HelpFormatter, add_quiet, chains_path, pixel, roi
+from .common import HelpFormatter, add_quiet, chains_path, number_in, pixel, roi
 
 DEFAULT_MAX_STEPS = 20000
 DEFAULT_MAX_PLOTS = 16
@@ -26,9 +26,19 @@ def add_parser(sub) -> None:
         "posteriors of the calibrated instrument, as `reconstruct --calibration` reconstructs it",
     )
     u.add_argument("--plot", help="PNG per pixel: depth marginal with the CRLB Gaussian, corner plot")
-    u.add_argument("--max-plots", type=int, default=DEFAULT_MAX_PLOTS, help="at most this many plots")
+    u.add_argument(
+        "--max-plots",
+        type=number_in(0, 10**6, "maximum plots", False, True),
+        default=DEFAULT_MAX_PLOTS,
+        help="at most this many plots",
+    )
     u.add_argument("--chains", action="store_true", help="keep all chains in OUT.chains.h5 (emcee HDF backend)")
-    u.add_argument("--max-steps", type=int, default=DEFAULT_MAX_STEPS, help="emcee steps a pixel at most")
+    u.add_argument(
+        "--max-steps",
+        type=number_in(1, 10**9, "maximum steps", False, True),
+        default=DEFAULT_MAX_STEPS,
+        help="emcee steps a pixel at most",
+    )
     u.add_argument("--seed", type=int, default=0, help="seed of the walkers")
     add_quiet(u)
     u.set_defaults(func=run)
@@ -44,6 +54,10 @@ def run(args) -> int:
     pixels = list(args.pixel or []) + (args.roi or [])
     if not pixels:
         raise ValueError("name pixels with --pixel ROW,COL (repeatable) or --roi R0:R1,C0:C1")
+    repeated = sorted({p for p in pixels if pixels.count(p) > 1})
+    if repeated:
+        shown = ", ".join(f"{r},{c}" for r, c in repeated)
+        raise ValueError(f"pixel {shown} named more than once (by --pixel or --roi): name each pixel once")
     calibration = None if args.calibration is None else Calibration.load(args.calibration)
     options = ReconstructOptions(method="ml", progress=False)
     t0 = time.perf_counter()

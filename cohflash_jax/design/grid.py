@@ -9,7 +9,7 @@ import functools
 import itertools
 import math
 import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
+import time
 from pathlib import Path
 
 import jax
@@ -28,10 +28,13 @@ RESULT_COLUMNS = (
     "echo_fw",
     "acquisition_s",
     "ambiguity_m",
+    "beyond_ambiguity",
     "mc_precision_mm",
     "mc_bias_mm",
     "mc_valid_fraction",
     "mc_trials",
+    "mc_truth_m",
+    "mc_note",
 )
 DEFAULT_CHUNK_POINTS = 32
 
@@ -101,7 +104,51 @@ def crlb_rows(points: list[dict]) -> list[dict]:
                 "echo_fw": 1e15 * float(echo[j]),
                 "acquisition_s": n / p["frame_rate_hz"],
                 "ambiguity_m": ambiguity_m(p),
+                # the instrument measures such a target folded into [0, ambiguity): the CRLB
+                # holds for the folded depth, and the Monte Carlo compares against it
+                "beyond_ambiguity": int(p["distance_m"] >= ambiguity_m(p)),
             }
+    return out
+
+
+# A Monte Carlo point's row is written at most this often (and after every chunk)
+CHECKPOINT_SECONDS = 2.0
+
+
+def die_with_parent() -> None:
+    """A worker's initializer: on Linux the kernel kills it when its parent dies (a SIGKILLed
+    sweep left its workers running, holding gigabytes); elsewhere nothing."""
+    import ctypes
+    import signal
+    import sys
+
+    if sys.platform.startswith("linux"):
+        pr_set_pdeathsig = 1
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle: it terminates us
+
+
+def grid_points(mc_points: list[dict], axes) -> list[dict]:
+    """`--mc` points checked against the grid: every axis named, nothing else, each value one
+    the axis holds (snapped to it) → the points; ValueError naming what is wrong otherwise."""
+    names = [n for n, _ in axes]
+    out = []
+    for m in mc_points:
+        extra = sorted(set(m) - set(names))
+        if extra:
+            raise ValueError(f"--mc names {', '.join(extra)}, not a swept axis (axes: {', '.join(names)})")
+        missing = [n for n in names if n not in m]
+        if missing:
+            raise ValueError(f"--mc must give a value for every axis; missing {', '.join(missing)}")
+        point = {}
+        for n, values in axes:
+            values = np.asarray(values, float)
+            hit = np.isclose(values, m[n], rtol=1e-9, atol=0)
+            if not hit.any():
+                nearest = values[np.argmin(np.abs(values - m[n]))]
+                raise ValueError(f"--mc {n}={m[n]:g} is not on the grid (nearest value on the axis: {nearest:g})")
+            point[n] = float(values[hit.argmax()])
+        out.append(point)
     return out
 
 
@@ -193,18 +240,33 @@ def run_sweep(
                     "choose another --out (the file's rows are kept)"
                 )
     done = {_key(r, names): r for r in previous}
-    wanted_mc = {_key({**fixed, **m}, names) for m in (mc_points or [])}
+    on_grid = {_key(p, names) for p in points}
+    # finished rows of other axis values are kept (after the grid's), never dropped
+    kept = [r for r in previous if _key(r, names) not in on_grid]
+    wanted_mc = {_key({**fixed, **m}, names) for m in grid_points(mc_points or [], axes)}
 
     def needs_mc(p):
         return mc_all or _key(p, names) in wanted_mc
 
-    todo = [
-        p for p in points if _key(p, names) not in done or (needs_mc(p) and "mc_trials" not in done[_key(p, names)])
-    ]
+    def finished(p):
+        row = done.get(_key(p, names))
+        return row is not None and not (needs_mc(p) and row.get("mc_trials") in (None, ""))
+
+    todo = [p for p in points if not finished(p)]
     if stop_after is not None:
         todo = todo[:stop_after]
+    last_write = [0.0]
+
+    def checkpoint(force: bool):
+        """The CSV rewritten with every finished row: after each chunk, and after a Monte Carlo
+        point at most every `CHECKPOINT_SECONDS` (so an interrupt loses little)."""
+        if force or time.monotonic() - last_write[0] > CHECKPOINT_SECONDS:
+            ordered = [done[_key(p, names)] for p in points if _key(p, names) in done]
+            _write_rows(out_csv, ordered + kept, columns)
+            last_write[0] = time.monotonic()
+
     pool = (
-        ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+        multiprocessing.get_context("spawn").Pool(workers, initializer=die_with_parent)
         if workers > 1 and any(needs_mc(p) for p in todo)
         else None
     )
@@ -215,20 +277,24 @@ def run_sweep(
             for start in range(0, len(todo), chunk):
                 batch = todo[start : start + chunk]
                 rows = [{"swept": swept, **p, **r} for p, r in zip(batch, crlb_rows(batch))]
+                for r in rows:  # a point's CRLB row stands until its Monte Carlo replaces it
+                    done.setdefault(_key(r, names), r)
                 mc_jobs = [(i, (p, mc_trials, 0)) for i, p in enumerate(batch) if needs_mc(p)]
-                results = (
-                    pool.map(_mc_worker, [j for _, j in mc_jobs])
-                    if pool is not None
-                    else map(_mc_worker, [j for _, j in mc_jobs])
-                )
+                jobs = [j for _, j in mc_jobs]
+                results = pool.imap(_mc_worker, jobs) if pool is not None else map(_mc_worker, jobs)
                 for (i, _), res in zip(mc_jobs, results):
                     rows[i].update(res)
+                    done[_key(rows[i], names)] = rows[i]
+                    checkpoint(force=False)
                 for r in rows:
                     done[_key(r, names)] = r
-                ordered = [done[_key(p, names)] for p in points if _key(p, names) in done]
-                _write_rows(out_csv, ordered, columns)
+                checkpoint(force=True)
                 bar.update(len(batch))
+    except KeyboardInterrupt:
+        checkpoint(force=True)  # the points finished since the last write
+        raise
     finally:
         if pool is not None:
-            pool.shutdown(cancel_futures=True)
-    return [done[_key(p, names)] for p in points if _key(p, names) in done]
+            pool.terminate()  # at once: an interrupt must not wait for running points
+            pool.join()
+    return [done[_key(p, names)] for p in points if _key(p, names) in done] + kept

@@ -17,7 +17,7 @@ def monte_carlo(point: dict, trials: int = 256, seed: int = 0, frequencies_hz=No
     `trials` pixels (a square tile, independent noise), range falloff as the point says, the
     point's instrument (its modulator with its sidebands, sensor and link) in both. Optional
     non-uniform schedule."""
-    from ..reconstruct import ReconstructOptions, reconstruct_array
+    from ..reconstruct import ReconstructOptions, build_plan, reconstruct_array
     from ..scenes import planar
     from ..simulate import simulate
 
@@ -28,12 +28,33 @@ def monte_carlo(point: dict, trials: int = 256, seed: int = 0, frequencies_hz=No
     effects = SENSOR_NOISE + ("sidebands",) + (("range_falloff",) if p["range_falloff"] else ())
     scene = planar(p["distance_m"], p["reflectance"], effects=effects)
     frames = simulate(scene, inst, side, side, jax.random.key(seed))
-    out = reconstruct_array(frames, inst, ReconstructOptions(method="ml", progress=False))
+    options = ReconstructOptions(method="ml", progress=False)
+    out = reconstruct_array(frames, inst, options)
     ok = out["valid"]
-    err = out["depth_m"][ok] - p["distance_m"]
+    # beyond the unambiguous window the instrument measures the folded depth: that is its truth
+    start, end = build_plan(inst, options).policy.valid_window_m
+    truth_m = start + (p["distance_m"] - start) % (end - start)
+    err = out["depth_m"][ok] - truth_m
     return {
         "mc_precision_mm": 1e3 * float(np.std(err)) if err.size > 1 else float("nan"),
         "mc_bias_mm": 1e3 * float(np.mean(err)) if err.size else float("nan"),
         "mc_valid_fraction": float(ok.mean()),
         "mc_trials": int(side * side),
+        "mc_truth_m": truth_m,
+        "mc_note": no_valid_reason(out, build_plan(inst, options)) if not ok.any() else "",
     }
+
+
+def no_valid_reason(out: dict, plan) -> str:
+    """Why a Monte Carlo found no valid pixel: the commonest status, and the median SNR against
+    the threshold applied."""
+    from ..status import Status
+
+    status = np.bincount(out["fit_status"].astype(int).ravel(), minlength=len(Status))
+    worst = Status(int(np.argmax(status)))
+    snr_db = 10 * np.log10(max(float(np.median(out["snr"])), 1e-30))
+    threshold_db = 10 * math.log10(plan.policy.snr_threshold)
+    return (
+        f"no valid pixel: mostly {worst.message} ({status[worst]} of {out['fit_status'].size}); "
+        f"median SNR {snr_db:.1f} dB against the {threshold_db:.1f} dB threshold"
+    )

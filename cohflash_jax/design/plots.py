@@ -21,6 +21,11 @@ def sweep_heat_map(rows: list[dict], names: list[str]):
     return xs, ys, grid, at
 
 
+def beyond_ambiguity(rows: list[dict]) -> np.ndarray:
+    """Points whose target lies beyond the unambiguous range (the instrument reads it folded)."""
+    return np.array([float(r["distance_m"]) >= float(r["ambiguity_m"]) for r in rows], bool)
+
+
 def plot_sweep(rows: list[dict], names: list[str], path) -> Path:
     """Heat map with precision contours (two axes) or precision against the swept parameter
     (one axis; against frames and acquisition time when it is num_steps), CRLB and Monte Carlo
@@ -43,6 +48,12 @@ def plot_sweep(rows: list[dict], names: list[str], path) -> Path:
         if levels.size and xs.size > 1 and ys.size > 1:
             cs = ax.contour(xs, ys, grid, levels=levels, colors="w", linewidths=0.8)
             ax.clabel(cs, fmt=lambda v: f"{v:g} mm", fontsize=8)
+        beyond = beyond_ambiguity(rows)
+        if beyond.any():
+            bx = np.array([float(r[names[0]]) for r in rows])[beyond]
+            by = np.array([float(r[names[1]]) for r in rows])[beyond]
+            ax.plot(bx, by, "x", color="r", ms=4, label="beyond the unambiguous range (folded depth)")
+            ax.legend(loc="upper right", fontsize=8)
         ax.set(xlabel=names[0], ylabel=names[1], title="depth precision bound (phase-locked CRLB)")
         if at:
             ax.set_title(ax.get_title() + "\nat " + ", ".join(f"{n} = {v:g}" for n, v in at.items()), fontsize=10)
@@ -51,6 +62,11 @@ def plot_sweep(rows: list[dict], names: list[str], path) -> Path:
     x = np.array([float(r[name]) for r in rows])
     order = np.argsort(x)
     fig, ax = plt.subplots(figsize=(7, 5), constrained_layout=True)
+    beyond = beyond_ambiguity(rows)
+    if beyond.any():
+        ax.plot(
+            x[beyond], crlb[beyond], "x", color="r", ms=7, zorder=5, label="beyond the unambiguous range (folded depth)"
+        )
     # markers, so that a sweep of one point shows
     ax.loglog(x[order], crlb[order], "-", marker=".", label="CRLB, phase-locked (autodiff Fisher)")
     ax.loglog(

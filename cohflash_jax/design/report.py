@@ -12,6 +12,8 @@ from .monte_carlo import monte_carlo
 from .optimise import DesignResult, frame_cap, meets, optimise_design, solve_for_n
 from .problem import DesignProblem
 
+DESIGN_FORMAT = "cohflash-design"
+
 
 def design_point(result: DesignResult, problem: DesignProblem) -> dict:
     """The optimum as a sweep/Monte Carlo point (paper units)."""
@@ -38,6 +40,8 @@ def design_report(
     result = optimise_design(problem, progress)
     v = result.variables
     doc = {
+        "format": DESIGN_FORMAT,
+        "format_version": 1,
         "problem": dataclasses.asdict(problem),
         "feasible": result.feasible,
         "note": result.note,

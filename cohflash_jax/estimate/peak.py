@@ -67,8 +67,8 @@ class DFTPeak(AbstractDepthEstimator):
     def estimate(self, stage, coarse, sequence, noise_var) -> DepthEstimate:
         depth = stage.depth(coarse, interpolate=False)
         amplitude = stage.tone_amplitude(coarse)
-        interpolation = InterpolatedPeak()
-        sigma_interp = peak_sigma_m(stage, amplitude, noise_var, interpolation.noise_factor, SIDEBAND_INTERPOLATION_BIAS_STEPS)
+        noise_factor = InterpolatedPeak().noise_factor
+        sigma_interp = peak_sigma_m(stage, amplitude, noise_var, noise_factor, SIDEBAND_INTERPOLATION_BIAS_STEPS)
         step = stage.grid_step_m
         # a window that wraps between the two read-outs gives an offset near the window: cap at a step
         offset = jnp.minimum(jnp.abs(stage.depth(coarse, interpolate=True) - depth), step)

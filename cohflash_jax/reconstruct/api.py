@@ -15,6 +15,7 @@ from tqdm.auto import tqdm
 from ..calibration_file import Calibration, CaptureSetup, PixelMaps
 from ..capture import Capture, CaptureError
 from ..estimate.drift import CarrierAlignment, choose_carrier_alignment
+from ..fisher import crlb_at_unit_snr_m
 from ..instrument import Instrument
 from ..runtime import retain_freed_memory
 from .engine import BlockReader, TileDispatcher, sub_tile_pixels
@@ -177,7 +178,12 @@ def reconstruct_capture(
             pending = (tile, r0, r1)
         collect(pending, bar)
     meta = depth_meta(
-        plan, options, alignment, seconds=time.perf_counter() - t0, registered=registration_maps is not None
+        plan,
+        options,
+        alignment,
+        seconds=time.perf_counter() - t0,
+        registered=registration_maps is not None,
+        crlb_at_unit_snr_m=crlb_at_unit_snr_m(instrument.sweep.frequencies_hz, plan.geometry.dominant_order),
     )
     return Reconstruction(outputs, meta, instrument)
 
@@ -207,4 +213,8 @@ def open_and_reconstruct(
         if capture is None:
             cap.close()
     result.meta["notes"] = json.dumps(list(setup.notes))
+    if calibration is not None:
+        result.meta["calibration_applied"] = json.dumps(calibration.values())
+    if reg_maps is not None:
+        result.meta["registration_applied"] = json.dumps(reg.summary())
     return result

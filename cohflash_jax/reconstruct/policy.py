@@ -39,6 +39,10 @@ def snr_threshold_margin(num_frames: int) -> float:
     return 1.0 / max(1.0 - math.sqrt(2.0 / max(num_frames - 1, 1)), 0.25)
 
 
+# beyond this, a threshold passes every pixel or none (and 10^(dB/10) overflows near 3000 dB)
+SNR_THRESHOLD_LIMIT_DB = 100.0
+
+
 def applied_snr_threshold_db(threshold_db: float, num_frames: int) -> float:
     """The SNR threshold (dB) a reconstruction of N frames applies for a requested one."""
     return threshold_db + 10 * math.log10(snr_threshold_margin(num_frames))
@@ -74,8 +78,10 @@ class ReconstructOptions:
         if not self.min_depth_m >= 0:
             raise ValueError(f"min_depth_m must be ≥ 0, got {self.min_depth_m}")
         # NaN compares false: a NaN threshold would pass every pixel, a NaN χ² limit none
-        if not math.isfinite(self.snr_threshold_db):
-            raise ValueError(f"snr_threshold_db must be a finite number of dB, got {self.snr_threshold_db}")
+        if not -SNR_THRESHOLD_LIMIT_DB <= self.snr_threshold_db <= SNR_THRESHOLD_LIMIT_DB:
+            raise ValueError(
+                f"snr_threshold_db must be within ±{SNR_THRESHOLD_LIMIT_DB:g} dB, got {self.snr_threshold_db}"
+            )
         if not (0 < self.false_alarm <= 1):
             raise ValueError(
                 f"false_alarm must be a probability in (0, 1] (1: no detection test), got {self.false_alarm}"
