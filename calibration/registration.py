@@ -34,7 +34,8 @@ def list_views(folders) -> list[list[Path]]:
     views = []
     for d in map(Path, folders):
         if not d.is_dir():
-            raise RegistrationError(f"image folder not found: {d}")
+            what = "is a file, not a folder of images" if Path(d).exists() else "not found"
+            raise RegistrationError(f"image folder {d}: {what}")
         files = sorted(p for p in d.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not files:
             raise RegistrationError(f"no images ({', '.join(sorted(IMAGE_SUFFIXES))}) in {d}")

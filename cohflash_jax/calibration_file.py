@@ -139,12 +139,13 @@ class Calibration:
         if delay is None:
             notes.append("system delay not identified in the calibration: τ_sys = 0 used")
             delay = 0.0
+        given = delay
         try:
             delay = float(delay)
         except (TypeError, ValueError):
             delay = math.nan
         if not math.isfinite(delay):
-            raise ValueError(f"{source}: system_delay_s must be a finite number of seconds, got {delay!r}")
+            raise ValueError(f"{source}: system_delay_s must be a finite number of seconds, got {given!r}")
         if abs(delay) > MAX_SYSTEM_DELAY_S:
             raise ValueError(
                 f"{source}: system_delay_s {delay:g} s is implausible: beyond ±{MAX_SYSTEM_DELAY_S:g} s "

@@ -139,6 +139,8 @@ class Capture:
 
     def __init__(self, path):
         self.path = Path(path)
+        if self.path.is_dir():
+            raise CaptureError(f"{self.path} is a folder, not a capture file")
         if not self.path.is_file():
             raise CaptureError(f"capture file not found: {self.path}")
         try:
@@ -208,7 +210,7 @@ class Capture:
             if fov.shape != (2,) or not np.all(np.isfinite(fov)) or not np.all((fov > 0) & (fov < 180)):
                 self._fail(
                     f"attribute field_of_view_deg must be two angles (horizontal, vertical) in (0°, 180°), "
-                    f"got {f.attrs['field_of_view_deg']!r}"
+                    f"got {np.asarray(f.attrs['field_of_view_deg']).tolist()!r}"
                 )
         for name in ("modulation_index", "dn_per_electron"):
             if name in f.attrs and not (np.isfinite(v := self._number_attr(name)) and v > 0):

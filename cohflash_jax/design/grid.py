@@ -224,6 +224,7 @@ def run_sweep(
     points = [complete_point({**fixed, **g}) for g in grid]
     columns = ["swept"] + list(PARAMETERS) + list(RESULT_COLUMNS)
     swept = ",".join(names)
+    wanted_mc = {_key({**fixed, **m}, names) for m in grid_points(mc_points or [], axes)}
     previous = read_rows(out_csv)
     if previous and any(r.get("swept") != swept for r in previous):
         raise ValueError(
@@ -243,7 +244,6 @@ def run_sweep(
     on_grid = {_key(p, names) for p in points}
     # finished rows of other axis values are kept (after the grid's), never dropped
     kept = [r for r in previous if _key(r, names) not in on_grid]
-    wanted_mc = {_key({**fixed, **m}, names) for m in grid_points(mc_points or [], axes)}
 
     def needs_mc(p):
         return mc_all or _key(p, names) in wanted_mc
