@@ -304,3 +304,20 @@ def test_turbulence_uncalibrated_flagged_calibrated_valid(calibrations, instrume
             assert not np.any(wild & out["valid"])
             if calib is not None:
                 assert out["valid"].mean() > 0.95
+
+
+def test_a_mirror_flat_target_is_refused_for_the_hybrid_and_a_far_known_distance_too(instrument, tmp_path):
+    """Every pixel with one optical carrier phase (a flat target facing the camera, no speckle):
+    errors of the modulator model map into the hybrid coherently (3° and 15 % at a stated
+    0.12° and 0.25 %), so the hybrid is reported not identified, with the cure; β still comes
+    out. A known distance beyond the unambiguous range is refused before any work."""
+    path = tmp_path / "flat.h5"
+    scene = cf.planar(30.5, 0.9, effects=NOISE + ERRORS + ("turbulence",))
+    simulate_to_file(path, scene, instrument, SIZE, SIZE, seed=4, progress=False)
+    doc = calibrate_hybrid(path, known_distance_m=30.5, progress=False)["document"]
+    assert doc["hybrid"]["phases_rad"] is None and doc["hybrid"]["relative_gains"] is None
+    assert "carrier phase" in doc["hybrid"]["note"] and "--tilt-m" in doc["hybrid"]["note"]
+    assert doc["fit"]["carrier_phase_coherence"] > 0.9
+    assert doc["modulator"]["modulation_index"]["value"] is not None
+    with pytest.raises(ValueError, match="beyond this capture's unambiguous range"):
+        calibrate_hybrid(path, known_distance_m=300.0, progress=False)

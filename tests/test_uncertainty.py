@@ -42,16 +42,16 @@ def _posteriors(inst, frames, max_steps=20000, seed=0):
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")
 def test_high_snr_intervals_cover_at_nominal_rates_with_crlb_widths(paper_instrument):
-    """200 pixels of the planar target at the paper's link budget: 68 % and 95 % intervals cover
-    the truth at their nominal rates (± 4 points; with 200 pixels the binomial σ of the 68 %
-    rate is 3.3 points, so this is a fixed-seed check — `experiments/posterior_coverage.py`
-    measures it on more pixels) and their widths match the CRLB (15 %). The slowest test."""
-    frames = cf.simulate(cf.planar(effects=NOISE), paper_instrument, 10, 20, jax.random.key(42))
+    """100 pixels of the planar target at the paper's link budget: 68 % and 95 % intervals cover
+    the truth at their nominal rates within two binomial σ (4.7 and 2.2 points at 100 pixels;
+    `experiments/posterior_coverage.py` measures it on thousands) and their widths match the
+    CRLB (15 %): an interval 20 % too narrow or wide fails the width check. The slowest test."""
+    frames = cf.simulate(cf.planar(effects=NOISE), paper_instrument, 10, 10, jax.random.key(42))
     posts = _posteriors(paper_instrument, frames)
     assert all(p.converged for p in posts)
     cover68 = np.mean([p.covers(30.5, 68) for p in posts])
     cover95 = np.mean([p.covers(30.5, 95) for p in posts])
-    assert abs(cover68 - 0.68) <= 0.04 and abs(cover95 - 0.95) <= 0.04, (cover68, cover95)
+    assert abs(cover68 - 0.68) <= 0.094 and abs(cover95 - 0.95) <= 0.044, (cover68, cover95)
     half68 = np.array([(p.interval68_m[1] - p.interval68_m[0]) / 2 for p in posts])
     crlb = np.array([p.crlb_m for p in posts])
     assert np.median(half68 / crlb) == pytest.approx(1.0, abs=0.15)

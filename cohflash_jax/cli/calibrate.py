@@ -49,7 +49,9 @@ def add_parser(sub) -> None:
     )
     ch.add_argument(
         "capture",
-        help="capture of a flat, uniform target; the carrier phase must drift within pixels "
+        help="capture of a uniform target within the unambiguous range whose pixels see different optical "
+        "carrier phases (a diffuse surface, or one tilted by a few wavelengths across the view: a mirror-flat "
+        "target facing the camera is refused for the hybrid); the carrier phase must also drift within pixels "
         "(turbulence or a reference-arm phase ramp) for the hybrid's phases and gains",
     )
     ch.add_argument("--out", required=True, help="calibration file: .json, or .h5 to keep per-pixel maps")

@@ -106,7 +106,7 @@ def crlb_rows(points: list[dict]) -> list[dict]:
                 "ambiguity_m": ambiguity_m(p),
                 # the instrument measures such a target folded into [0, ambiguity): the CRLB
                 # holds for the folded depth, and the Monte Carlo compares against it
-                "beyond_ambiguity": int(p["distance_m"] >= ambiguity_m(p)),
+                "beyond_ambiguity": float(p["distance_m"] >= ambiguity_m(p)),  # 1.0 or 0.0, as read back
             }
     return out
 

@@ -4,6 +4,7 @@ common carrier drift, fit the modulator, then τ_sys against a known distance �
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax.numpy as jnp
@@ -64,6 +65,18 @@ def read_mean_frame(path) -> np.ndarray:
         return total / n
 
 
+# |mean of z_p/|z_p|| over the calibration pixels above which the hybrid is not identified
+MAX_CARRIER_PHASE_COHERENCE = 0.5
+
+
+def carrier_phase_coherence(amplitudes) -> float:
+    """|⟨z_p/|z_p|⟩|: 1 where every pixel's complex amplitude has one phase (a mirror-flat target
+    facing the camera), ~1/√P where the optical carrier phases are spread (speckle, tilt)."""
+    z = np.asarray(amplitudes)
+    z = z[np.abs(z) > 0]
+    return float(np.abs(np.mean(z / np.abs(z)))) if z.size else 1.0
+
+
 def calibrate_hybrid(
     capture_path,
     *,
@@ -95,6 +108,13 @@ def calibrate_hybrid(
             )
         instrument = cap.instrument()
         freqs = cap.frequencies_hz
+        unambiguous_m = instrument.sweep.ambiguity_m
+        if known_distance_m is not None and known_distance_m >= unambiguous_m:
+            raise ValueError(
+                f"--known-distance-m {known_distance_m:g} m lies beyond this capture's unambiguous range "
+                f"{unambiguous_m:.4g} m: the data give the depth only modulo {unambiguous_m:.4g} m, so τ_sys "
+                "would be off by a whole number of periods; calibrate on a target nearer than that"
+            )
         nominal = np.asarray(cap.hybrid_phases_rad, np.float64)
         modulator = instrument.modulator
         dark = read_mean_frame(dark_path) if dark_path is not None else None
@@ -165,6 +185,23 @@ def calibrate_hybrid(
             freqs, np.asarray(r)[:, strongest], np.asarray(noise_var)[strongest], 2 * depth[strongest] / C, modulator
         )
         modulator = mod_fit.modulator
+    coherence = carrier_phase_coherence(fit.amplitudes)
+    if fit.identified and coherence > MAX_CARRIER_PHASE_COHERENCE:
+        fit = dataclasses.replace(
+            fit,
+            identified=False,
+            note=(
+                f"phases and gains are not identifiable from this target: every pixel sees nearly the same "
+                f"optical carrier phase (coherence {coherence:.2f} > {MAX_CARRIER_PHASE_COHERENCE}), as a "
+                "target flat to a fraction of the wavelength and facing the camera gives. Errors of the "
+                "modulator model are then common to all pixels and map into the hybrid in one direction "
+                "(measured on such a target: 3° and 15 % at a stated 0.12° and 0.25 %). A diffusely "
+                "scattering target (speckle) or one tilted by a few wavelengths across the view gives each "
+                "pixel its own carrier phase (`cohflash simulate planar --tilt-m 2e-4,1.3e-4` or "
+                "`--effects …,speckle`)"
+            ),
+        )
+        hybrid = Hybrid(tuple(nominal))
     offsets, offset_sigma, offset_note = fit_offsets(port_means[:, good], stats, fit, dark)
     if fit.identified:
         hybrid = Hybrid(tuple(fit.phases_rad), tuple(fit.relative_gains), tuple(offsets))
@@ -235,6 +272,7 @@ def calibrate_hybrid(
             "carrier_drift": drift_note,
             "known_distance_m": known_distance_m,
             "depth_spread_m": float(np.std(depth[ok])) if ok.any() else None,
+            "carrier_phase_coherence": coherence,
         },
         "maps": sorted(maps),
     }

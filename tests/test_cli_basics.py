@@ -1,0 +1,142 @@
+"""The basics a metrologist expects of the command line: `info` on every format, `--version`,
+`simulate --set/--design/--tilt-m`, provenance in depth.h5, and a sweep honest about the
+unambiguous range and about Monte Carlo points with nothing valid."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from cohflash_jax.cli import main
+
+
+def _run(argv, capsys) -> str:
+    assert main(argv) == 0, capsys.readouterr().err
+    return capsys.readouterr().out
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0 and capsys.readouterr().out.startswith("cohflash ")
+
+
+def test_simulate_set_and_tilt_make_the_instrument_and_target_asked_for(tmp_path, capsys):
+    out = tmp_path / "s.h5"
+    _run(
+        [
+            "simulate",
+            "planar",
+            "--size",
+            "6x8",
+            "--set",
+            "num_steps=64,step_mhz=20,start_ghz=0.5,exposure_ms=2,distance_m=3.2,reflectance=0.25",
+            "--tilt-m",
+            "0.01,0",
+            "--out",
+            str(out),
+            "--quiet",
+        ],
+        capsys,
+    )
+    with h5py.File(out) as f:
+        freqs = f["frequencies_hz"][()]
+        depth, reflectance = f["truth/depth_m"][()], f["truth/reflectance"][()]
+        exposure = f.attrs["exposure_s"]
+    np.testing.assert_allclose(freqs, 0.5e9 + 20e6 * np.arange(64))
+    assert exposure == pytest.approx(2e-3)
+    assert np.allclose(reflectance, 0.25)
+    # the tilt: 1 cm across the width, none across the height
+    assert depth.mean() == pytest.approx(3.2, abs=1e-3)
+    assert np.ptp(depth[0]) == pytest.approx(0.01 * 7 / 8, rel=0.2) and np.ptp(depth[:, 0]) < 1e-9
+    text = _run(["info", str(out)], capsys)
+    assert "64 frequency steps" in text and "6×8 pixels" in text and "uniform step 20 MHz" in text
+    assert "truth: depth_m, reflectance" in text
+
+
+def test_simulate_design_simulates_the_optimum(tmp_path, capsys):
+    design = {
+        "format": "cohflash-design",
+        "format_version": 1,
+        "problem": {"frame_rate_hz": 350.0, "distance_m": 5.0, "reflectance": 0.4},
+        "feasible": True,
+        "num_frames": 48,
+        "variables": {
+            "start_hz": 0.2e9,
+            "step_hz": 30e6,
+            "modulation_index": 1.6,
+            "bias_rad": 0.7,
+            "exposure_s": 1e-3,
+            "probe_power_w": 5e-3,
+        },
+    }
+    path = tmp_path / "design.json"
+    path.write_text(json.dumps(design))
+    out = tmp_path / "d.h5"
+    _run(["simulate", "planar", "--size", "4x4", "--design", str(path), "--out", str(out), "--quiet"], capsys)
+    with h5py.File(out) as f:
+        np.testing.assert_allclose(f["frequencies_hz"][()], 0.2e9 + 30e6 * np.arange(48))
+        assert f.attrs["frame_rate_hz"] == 350.0 and f.attrs["modulation_index"] == pytest.approx(1.6)
+        assert np.allclose(f["truth/depth_m"][()], 5.0)
+    assert "feasible" in _run(["info", str(path)], capsys)
+    design["feasible"] = False
+    design["note"] = "too far"
+    path.write_text(json.dumps(design))
+    assert main(["simulate", "planar", "--design", str(path), "--out", str(tmp_path / "x.h5")]) == 2
+    assert "not feasible" in capsys.readouterr().err
+
+
+def test_depth_records_every_input_and_the_values_applied_and_info_shows_it(tmp_path, capsys):
+    capture, depth = tmp_path / "c.h5", tmp_path / "depth.h5"
+    _run(["simulate", "planar", "--size", "4x4", "--steps", "64", "--out", str(capture), "--quiet"], capsys)
+    calibration = tmp_path / "cal.json"
+    calibration.write_text(
+        json.dumps(
+            {
+                "format": "cohflash-calibration",
+                "format_version": 1,
+                "hybrid": {"phases_rad": [0, 1.6, 3.1, 4.7], "relative_gains": [1, 1.1, 0.9, 1], "offsets_dn": [0] * 4},
+                "system_delay_s": 1e-9,
+            }
+        )
+    )
+    summary = _run(["reconstruct", str(capture), "--out", str(depth), "--calibration", str(calibration)], capsys)
+    assert "CRLB (phase-locked, any method)" in summary or "valid pixels 0" in summary
+    with h5py.File(depth) as f:
+        provenance = json.loads(f.attrs["provenance"])
+        applied = json.loads(f.attrs["calibration_applied"])
+    record = provenance["inputs"]["calibration"]
+    assert record["sha256"] == hashlib.sha256(calibration.read_bytes()).hexdigest()
+    assert record["size_bytes"] == calibration.stat().st_size
+    assert provenance["inputs"]["capture"]["sha256"] == hashlib.sha256(capture.read_bytes()).hexdigest()
+    assert applied["hybrid_relative_gains"] == [1, 1.1, 0.9, 1] and applied["system_delay_s"] == 1e-9
+    text = _run(["info", str(depth)], capsys)
+    assert "method ml" in text and "input calibration" in text and "statuses" in text
+    assert "gains [1.0, 1.1, 0.9, 1.0]" in _run(["info", str(calibration)], capsys)
+
+
+def test_sweep_marks_folded_points_keeps_rows_and_says_why_nothing_was_valid(tmp_path, capsys):
+    """num_steps 64 at 20 MHz: unambiguous to 3.75 m, so 10 m is beyond it. A second run with
+    other distances keeps the first run's rows. A Monte Carlo far below threshold says why."""
+    out = tmp_path / "sweep.csv"
+    fixed = ["--set", "num_steps=64,step_mhz=20,reflectance=0.5", "--quiet"]
+    text = _run(["sweep", "--axis", "distance_m=2,10", *fixed, "--out", str(out)], capsys)
+    assert "1 of 2 points put the target beyond the unambiguous range" in text
+    rows = list(csv.DictReader(open(out)))
+    assert [float(r["beyond_ambiguity"]) for r in rows] == [0.0, 1.0]
+    _run(["sweep", "--axis", "distance_m=3", *fixed, "--out", str(out)], capsys)
+    assert sorted(float(r["distance_m"]) for r in csv.DictReader(open(out))) == [2.0, 3.0, 10.0]
+    dim = ["--set", "num_steps=64,step_mhz=20,probe_power_mw=0.001", "--mc-trials", "9", "--quiet"]
+    text = _run(
+        ["sweep", "--axis", "distance_m=2", "--mc", "distance_m=2", *dim, "--out", str(tmp_path / "d.csv")], capsys
+    )
+    assert "no valid pixel" in text and "dB threshold" in text
+    (row,) = csv.DictReader(open(tmp_path / "d.csv"))
+    assert row["mc_note"].startswith("no valid pixel") and float(row["mc_truth_m"]) == pytest.approx(2.0)
+    info = _run(["info", str(out)], capsys)
+    assert "3 points over distance_m" in info and "1 points beyond the unambiguous range" in info
