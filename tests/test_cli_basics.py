@@ -140,3 +140,39 @@ def test_sweep_marks_folded_points_keeps_rows_and_says_why_nothing_was_valid(tmp
     assert row["mc_note"].startswith("no valid pixel") and float(row["mc_truth_m"]) == pytest.approx(2.0)
     info = _run(["info", str(out)], capsys)
     assert "3 points over distance_m" in info and "1 points beyond the unambiguous range" in info
+
+
+def test_sweep_workers_die_with_their_parent(tmp_path):
+    """A SIGKILLed sweep left its worker processes running, holding gigabytes: its pool's
+    workers now ask the kernel to kill them when their parent dies."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = (
+        "import multiprocessing, time\n"
+        "from cohflash_jax.design.grid import die_with_parent\n"
+        "if __name__ == '__main__':\n"
+        "    pool = multiprocessing.get_context('spawn').Pool(1, initializer=die_with_parent)\n"
+        "    pid = pool.apply(__import__('os').getpid)\n"
+        "    pool.apply_async(time.sleep, (60,))  # busy: it would not notice its parent's death\n"
+        "    time.sleep(0.5)\n"
+        "    print(pid, flush=True)\n"
+        "    time.sleep(60)\n"
+    )
+    (tmp_path / "parent.py").write_text(script)
+    parent = subprocess.Popen([sys.executable, str(tmp_path / "parent.py")], stdout=subprocess.PIPE, text=True)
+    worker = int(parent.stdout.readline())
+    os.kill(parent.pid, signal.SIGKILL)
+    parent.wait()
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            os.kill(worker, 0)
+        except ProcessLookupError:
+            return
+        time.sleep(0.05)
+    os.kill(worker, signal.SIGKILL)
+    raise AssertionError("the worker outlived its killed parent")
