@@ -45,7 +45,29 @@ def list_views(folders) -> list[list[Path]]:
         raise RegistrationError(
             "unequal numbers of views: " + ", ".join(f"{d} has {c}" for d, c in zip(folders, counts))
         )
+    same_as_earlier(folders, views)
     return views
+
+
+def same_as_earlier(folders, views) -> None:
+    """RegistrationError where two CCDs' folders are one folder, or hold byte-identical images
+    (four copies of CCD 1's folder registered as 0.000° apart, with no warning)."""
+    import hashlib
+
+    digest = lambda files: tuple(hashlib.sha256(f.read_bytes()).hexdigest() for f in files)
+    seen = {}
+    for k, (folder, files) in enumerate(zip(folders, views)):
+        key = (Path(folder).resolve(),)
+        if key in seen:
+            raise RegistrationError(f"CCD {k + 1}'s folder {folder} is CCD {seen[key] + 1}'s: give each CCD its own")
+        seen[key] = k
+        content = digest(files)
+        if content in seen:
+            raise RegistrationError(
+                f"CCD {k + 1}'s images in {folder} are byte-identical to CCD {seen[content] + 1}'s: "
+                "the same views copied twice? Each CCD must photograph the board itself"
+            )
+        seen[content] = k
 
 
 def read_image(path: Path) -> np.ndarray:

@@ -176,3 +176,53 @@ def test_sweep_workers_die_with_their_parent(tmp_path):
         time.sleep(0.05)
     os.kill(worker, signal.SIGKILL)
     raise AssertionError("the worker outlived its killed parent")
+
+
+def test_every_option_has_help_and_shows_its_default():
+    import argparse
+
+    from cohflash_jax.cli import build_parser
+
+    def parsers(p):
+        yield p
+        for action in p._actions:  # noqa: SLF001 (argparse has no public list of actions)
+            if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001
+                for sub in action.choices.values():
+                    yield from parsers(sub)
+
+    missing = []
+    for parser in parsers(build_parser()):
+        text = parser.format_help()
+        for action in parser._actions:  # noqa: SLF001
+            if isinstance(action, argparse._SubParsersAction) or action.dest in ("help", "version"):  # noqa: SLF001
+                continue
+            if not action.help:
+                missing.append(f"{parser.prog} {'/'.join(action.option_strings) or action.dest}")
+            elif action.default not in (None, False, argparse.SUPPRESS) and not action.required:
+                assert "default" in text, parser.prog
+    assert not missing, missing
+
+
+def test_an_interrupted_sweep_keeps_every_finished_monte_carlo_point(tmp_path, monkeypatch):
+    """Ctrl-C during the Monte Carlo points of a chunk: the points finished before it are in
+    the CSV (a checkpoint at the interrupt), and a rerun resumes the rest."""
+    import cohflash_jax.design.grid as grid
+
+    calls = []
+
+    def fake(args):
+        calls.append(args)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return {"mc_precision_mm": 1.0, "mc_bias_mm": 0.0, "mc_valid_fraction": 1.0, "mc_trials": 4}
+
+    monkeypatch.setattr(grid, "_mc_worker", fake)
+    axes = [("distance_m", np.array([10.0, 20.0, 30.0, 40.0]))]
+    out = tmp_path / "s.csv"
+    with pytest.raises(KeyboardInterrupt):
+        grid.run_sweep(axes, out, fixed={"num_steps": 64.0}, mc_all=True, progress=False)
+    rows = list(csv.DictReader(open(out)))
+    assert sorted(float(r["distance_m"]) for r in rows if r["mc_trials"]) == [10.0, 20.0]
+    grid.run_sweep(axes, out, fixed={"num_steps": 64.0}, mc_all=True, progress=False)
+    assert len(calls) == 3 + 2  # only the two unfinished points ran again
+    assert all(r["mc_trials"] for r in csv.DictReader(open(out)))

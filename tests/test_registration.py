@@ -159,12 +159,19 @@ def test_bad_inputs_name_the_problem(tmp_path, views):
     with pytest.raises(RegistrationError, match=f"{odd.name}.*bit depth"):
         register(list(views[:3]) + [depth], BOARD, progress=False)
     few = [tmp_path / f"few{k}" for k in range(4)]
-    for d in few:
+    for k, d in enumerate(few):
         d.mkdir()
         for i in range(3):
-            cv2.imwrite(str(d / f"v{i}.png"), np.full((64, 64), 128, np.uint8))
+            cv2.imwrite(str(d / f"v{i}.png"), np.full((64, 64), 128 + k, np.uint8))
     with pytest.raises(RegistrationError, match="too few valid views"):
         register(few, BOARD, progress=False)
+    # one folder four times, or four copies of it: refused (they registered as 0.000° apart)
+    with pytest.raises(RegistrationError, match="CCD 2's folder .* is CCD 1's"):
+        register([views[0]] * 4, BOARD, progress=False)
+    copy = tmp_path / "copy"
+    shutil.copytree(views[0], copy)
+    with pytest.raises(RegistrationError, match="CCD 2's images .* byte-identical to CCD 1's"):
+        register([views[0], copy] + list(views[2:]), BOARD, progress=False)
     with pytest.raises(ValueError, match="COLSxROWS"):
         Board.parse("9by6", 25)
     with pytest.raises(RegistrationError, match="working distance must be a positive"):
