@@ -154,6 +154,12 @@ CASES = [
     Case("frequencies NaN", R(), "frequenc", _frequencies(lambda f: np.r_[f[:-1], np.nan])),
     Case("hybrid phases (3,)", R(), "hybrid_phases_rad", _dataset("hybrid_phases_rad", np.zeros(3))),
     Case("hybrid phases NaN", R(), "hybrid_phases_rad", _dataset("hybrid_phases_rad", np.full(4, np.nan))),
+    Case(
+        "hybrid phases nearly equal",
+        R(),
+        "nearly equal",
+        _dataset("hybrid_phases_rad", np.array([0, 0.03, 0.06, 0.09])),
+    ),
     Case("field of view one value", R(), "field_of_view_deg", _attr("field_of_view_deg", [40.0])),
     Case("field of view text", R(), "field_of_view_deg", _attr("field_of_view_deg", "wide")),
     Case("field of view 200°", R(), "field_of_view_deg", _attr("field_of_view_deg", [200.0, 30.0])),
@@ -212,6 +218,7 @@ CASES = [
     Case("sweep --mc not an axis", lambda d: _sweep(d, "--axis", "num_steps=35,70", "--mc", "distance_m=30"), "axis"),
     Case("sweep --mc off grid", lambda d: _sweep(d, "--axis", "num_steps=35,70", "--mc", "num_steps=50"), "grid"),
     Case("sweep --set text", lambda d: _sweep(d, "--axis", "num_steps=35,70", "--set", "distance_m=far"), "far"),
+    Case("sweep negative start", lambda d: _sweep(d, "--axis", "start_ghz=-1,1"), "start_ghz"),
     Case("sweep trials 0", lambda d: _sweep(d, "--axis", "num_steps=35,70", "--mc-trials", "0"), "trials"),
     # uncertainty
     Case("pixel twice", lambda d: _posterior(d, "--pixel", "0,0", "--pixel", "0,0"), "more than once"),

@@ -48,7 +48,17 @@ PARAMETERS: dict[str, Parameter] = {
     ),
 }
 # Limits of a plausible design point (paper units): refused beyond them
-PLAUSIBLE = {"reflectance": (0.0, 1.0), "bias_rad": (0.0, math.pi), "modulation_index": (0.0, 40.0)}
+PLAUSIBLE = {
+    "reflectance": (0.0, 1.0),
+    "bias_rad": (0.0, math.pi),
+    "modulation_index": (0.0, 40.0),
+    "start_ghz": (0.0, 1e3),  # a microwave frequency: not negative, below a THz
+    "bandwidth_ghz": (0.0, 1e3),
+    "distance_m": (0.0, 1e5),
+    "probe_power_mw": (0.0, 1e6),
+    "frame_rate_hz": (0.0, 1e7),
+    "num_steps": (4, 1e8),
+}
 
 
 def complete_point(point: dict) -> dict:
