@@ -1,15 +1,27 @@
 """Shared, session-scoped fixtures: small shapes so JAX compiles each once."""
 
 import os
+import shutil
+import tempfile
+from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 
 import cohflash_jax as cf
+from cohflash_jax.runtime import enable_compilation_cache
 
-# the CLI keeps compiled programs in ~/.cache/cohflash/jax; tests stay hermetic
-os.environ.setdefault("COHFLASH_JAX_CACHE", "off")
+# The CLI keeps compiled programs in ~/.cache/cohflash/jax. The tests keep theirs in a folder of
+# this run alone, shared by its xdist workers (one compiles a program, the other loads it),
+# removed when the run ends: hermetic, and programs that several tests and both workers build
+# are compiled once a run.
+RUN_CACHE = (
+    Path(tempfile.gettempdir())
+    / f"cohflash-test-jax-cache-{os.getppid() if os.environ.get('PYTEST_XDIST_WORKER') else os.getpid()}"
+)
+os.environ["COHFLASH_JAX_CACHE"] = str(RUN_CACHE)
+enable_compilation_cache(RUN_CACHE)
 # JAX's backends start now, with one CPU device: the CLI's `use_cpu_streams` (run by tests that
 # call `cohflash` in-process) then changes nothing, and every test compiles for one device; the
 # two-device path has a test of its own, in a subprocess (test_short_sweeps)
@@ -42,3 +54,9 @@ def simulate_pixels(paper_instrument):
         return cf.simulate(scene, inst, *PIXELS, jax.random.key(seed))
 
     return run
+
+
+def pytest_sessionfinish(session):
+    """The run's compilation cache goes with the run (the controller, or a run without xdist)."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        shutil.rmtree(RUN_CACHE, ignore_errors=True)
