@@ -7,7 +7,7 @@ import sys
 
 import numpy as np
 
-from .common import HelpFormatter, add_quiet, number_in
+from .common import HelpFormatter, add_quiet, number_in, provenance
 
 DEFAULT_MAX_PIXELS = 1024
 
@@ -137,6 +137,8 @@ def run_hybrid(args) -> int:
         progress=not args.quiet,
     )
     doc = result["document"]
+    options = {"known_distance_m": args.known_distance_m, "max_pixels": args.max_pixels}
+    doc["provenance"] = provenance(args.capture, options, {"dark": args.dark, "flat": args.flat})
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         write_calibration(args.out, doc, result["maps"])

@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from .common import HelpFormatter, add_quiet, chains_path, number_in, pixel, roi
+from .common import HelpFormatter, add_quiet, chains_path, number_in, pixel, provenance, roi
 
 DEFAULT_MAX_STEPS = 20000
 DEFAULT_MAX_PLOTS = 16
@@ -80,6 +80,7 @@ def run(args) -> int:
         else:
             results, skipped = run(None)
     seconds = time.perf_counter() - t0
+    sampler_options = {"max_steps": args.max_steps, "seed": args.seed}
     meta = {
         "capture": str(Path(args.capture).resolve()),
         "seconds": seconds,
@@ -88,7 +89,12 @@ def run(args) -> int:
         "calibration": str(Path(args.calibration).resolve()) if args.calibration else "",
         "system_delay_s": float(setup.instrument.system_delay_s),
         "notes": json.dumps(list(setup.notes)),
+        "provenance": json.dumps(
+            provenance(args.capture, sampler_options, {"calibration": args.calibration}), default=str
+        ),
     }
+    if calibration is not None:
+        meta["calibration_applied"] = json.dumps(calibration.values())
     write_posteriors(args.out, results, meta)
     print(f"wrote {args.out}: {len(results)} pixel(s), {seconds / len(results):.2f} s per pixel")
     for note in setup.notes:
