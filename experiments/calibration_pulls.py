@@ -65,14 +65,18 @@ def pulls(doc: dict, truth: dict) -> dict[str, float]:
             ][k]
             out[f"gain CCD {k + 1}"] = (hyb["relative_gains"][k] - g[k]) / hyb["relative_gains_sigma"][k]
             out[f"offset CCD {k + 1}"] = (hyb["offsets_dn"][k] - (o[k] - g[k] * o[0])) / hyb["offsets_sigma_dn"][k]
+    stated = lambda e: e.get("value") is not None and e.get("sigma") is not None  # a value with its σ
     beta = mod["modulation_index"]
-    if beta.get("value") is not None:
+    if stated(beta):
         out["β"] = (beta["value"] - 2.0) / beta["sigma"]
     roll = mod["rolloff_3db_hz"]
-    if roll.get("value") is not None:
+    if stated(roll):
         out["roll-off"] = (roll["value"] - truth["beta_rolloff_3db_hz"]) / roll["sigma"]
+    elif roll.get("value") == float("inf"):  # "no roll-off detected": is the stated lower bound true?
+        bound = float(roll["note"].rsplit("f_3dB > ", 1)[1].split()[0])
+        out["roll-off bound holds"] = float(truth["beta_rolloff_3db_hz"] > bound)
     delay = doc["system_delay_s"]
-    if delay.get("value") is not None:
+    if stated(delay):
         out["τ_sys"] = (delay["value"] - truth["system_delay_s"]) / delay["sigma"]
     return out
 

@@ -196,6 +196,9 @@ def test_dark_and_flat_maps(instrument, tmp_path, calibrations):
         == 0
     )
     loaded = Calibration.load(out)
+    with h5py.File(out) as f:  # the file records what it was made from
+        inputs = json.loads(f.attrs["document"])["provenance"]["inputs"]
+    assert set(inputs) == {"capture", "dark", "flat"} and all(len(r["sha256"]) == 64 for r in inputs.values())
     sensor = instrument.sensor
     g = np.asarray(truth["hybrid_relative_gains"])
     expected_dark = np.asarray(truth["hybrid_offsets_dn"]) + g * float(sensor.dn_per_electron * sensor.dark_electrons)
@@ -309,8 +312,9 @@ def test_turbulence_uncalibrated_flagged_calibrated_valid(calibrations, instrume
 def test_a_mirror_flat_target_is_refused_for_the_hybrid_and_a_far_known_distance_too(instrument, tmp_path):
     """Every pixel with one optical carrier phase (a flat target facing the camera, no speckle):
     errors of the modulator model map into the hybrid coherently (3° and 15 % at a stated
-    0.12° and 0.25 %), so the hybrid is reported not identified, with the cure; β still comes
-    out. A known distance beyond the unambiguous range is refused before any work."""
+    0.12° and 0.25 %), so the hybrid is reported not identified, with the cure, and with a
+    drifting carrier the modulator too (β pulls to 4σ, roll-off to 15σ there). A known distance
+    beyond the unambiguous range is refused before any work."""
     path = tmp_path / "flat.h5"
     scene = cf.planar(30.5, 0.9, effects=NOISE + ERRORS + ("turbulence",))
     simulate_to_file(path, scene, instrument, SIZE, SIZE, seed=4, progress=False)
@@ -318,6 +322,8 @@ def test_a_mirror_flat_target_is_refused_for_the_hybrid_and_a_far_known_distance
     assert doc["hybrid"]["phases_rad"] is None and doc["hybrid"]["relative_gains"] is None
     assert "carrier phase" in doc["hybrid"]["note"] and "--tilt-m" in doc["hybrid"]["note"]
     assert doc["fit"]["carrier_phase_coherence"] > 0.9
-    assert doc["modulator"]["modulation_index"]["value"] is not None
+    # the modulator was fitted through that hybrid and a drift it cannot separate: refused too
+    beta = doc["modulator"]["modulation_index"]
+    assert beta["value"] is None and "drifting carrier" in beta["note"]
     with pytest.raises(ValueError, match="beyond this capture's unambiguous range"):
         calibrate_hybrid(path, known_distance_m=300.0, progress=False)

@@ -202,6 +202,16 @@ def calibrate_hybrid(
             ),
         )
         hybrid = Hybrid(tuple(nominal))
+        if drifting:  # the modulator was fitted through that hybrid and a drift it cannot separate
+            why = (
+                "not identifiable from this target with a drifting carrier: every pixel sees one optical "
+                "carrier phase, so the drift, the hybrid and the sideband weights trade off in every pixel "
+                "alike (measured on such targets: β pulls to 4σ, roll-off to 15σ); see the hybrid's note"
+            )
+            mod_fit = dataclasses.replace(
+                mod_fit, modulation_index=Estimate(None, None, why), rolloff_3db_hz=Estimate(None, None, why)
+            )
+            modulator = instrument.modulator
     offsets, offset_sigma, offset_note = fit_offsets(port_means[:, good], stats, fit, dark)
     if fit.identified:
         hybrid = Hybrid(tuple(fit.phases_rad), tuple(fit.relative_gains), tuple(offsets))
