@@ -119,7 +119,9 @@ def test_zero_echo_ends_with_a_clear_result(paper_instrument, tmp_path, capsys):
     assert (tmp_path / "p_0_0.png").read_bytes()[:4] == b"\x89PNG"
     assert main(["uncertainty", str(cap), "--pixel", "5,5", "--out", str(out)]) == 2
     assert main(["uncertainty", str(cap), "--out", str(out)]) == 2
-    assert main(["uncertainty", str(cap), "--pixel", "0,0", "--out", str(out), "--max-steps", "0"]) == 2
+    with pytest.raises(SystemExit) as refused:  # argparse refuses it, naming the option
+        main(["uncertainty", str(cap), "--pixel", "0,0", "--out", str(out), "--max-steps", "0"])
+    assert refused.value.code == 2 and "--max-steps" in capsys.readouterr().err
     # --chains writes OUT.chains.h5: refused where that is the capture itself
     twin = tmp_path / "p.chains.h5"
     twin.write_bytes(cap.read_bytes())

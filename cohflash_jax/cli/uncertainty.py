@@ -54,10 +54,6 @@ def run(args) -> int:
     pixels = list(args.pixel or []) + (args.roi or [])
     if not pixels:
         raise ValueError("name pixels with --pixel ROW,COL (repeatable) or --roi R0:R1,C0:C1")
-    repeated = sorted({p for p in pixels if pixels.count(p) > 1})
-    if repeated:
-        shown = ", ".join(f"{r},{c}" for r, c in repeated)
-        raise ValueError(f"pixel {shown} named more than once (by --pixel or --roi): name each pixel once")
     calibration = None if args.calibration is None else Calibration.load(args.calibration)
     options = ReconstructOptions(method="ml", progress=False)
     t0 = time.perf_counter()
