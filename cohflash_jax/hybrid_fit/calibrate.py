@@ -150,9 +150,14 @@ def calibrate_hybrid(
         depth, status = reconstruct_selected(hybrid, modulator, drift)
         good = np.flatnonzero(status == Status.OK)
         if good.size < MIN_PIXELS:
-            raise CaptureError(
-                f"{capture_path}: only {good.size} of {p} pixels reconstruct validly: too little signal to calibrate"
+            why = (
+                f"with the carrier drift found (rms {np.std(drift):.2f} rad) removed they do not fit: a target "
+                "flat to a fraction of the wavelength facing the camera (one carrier phase in every pixel) leaves "
+                "that drift undetermined; tilt it by a few wavelengths across the view or use a diffuse target"
+                if drifting
+                else "too little signal to calibrate"
             )
+            raise CaptureError(f"{capture_path}: only {good.size} of {p} pixels reconstruct validly: {why}")
         tone = tone_sequences(freqs, 2 * depth / C, modulator)
         sub, tone_g = data[:, :, good], tone[:, good]
         for _ in range(inner_iterations):  # alternate: hybrid given the drift, drift given the hybrid
