@@ -31,6 +31,7 @@ format: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/bench_simulate.py
 	$(PY) benchmarks/bench_reconstruct.py
+	$(PY) benchmarks/bench_process.py
 
 clean:
 	rm -rf $(VENV) out
