@@ -33,11 +33,11 @@ class OutputSet:
     renames themselves is held until they finish."""
 
     def __init__(self):
-        self._pending: list[tuple[Path, Path]] = []
+        self._pending: dict[Path, Path] = {}  # target → its temporary (a target written twice: once)
         self._token = None
 
     def add(self, tmp: Path, path: Path) -> None:
-        self._pending.append((tmp, path))
+        self._pending[path] = tmp
 
     def __enter__(self) -> OutputSet:
         self._token = _ACTIVE_SET.set(self)
@@ -47,9 +47,9 @@ class OutputSet:
         _ACTIVE_SET.reset(self._token)
         if exc_type is None:
             with _interrupts_held():
-                for tmp, path in self._pending:
+                for path, tmp in self._pending.items():
                     os.replace(tmp, path)
-        for tmp, _ in self._pending:
+        for tmp in self._pending.values():
             tmp.unlink(missing_ok=True)
 
 
@@ -72,9 +72,9 @@ def _interrupts_held():
         signal.signal(signal.SIGINT, previous)
 
 
-def temporary_name(path: Path, pid: int | None = None) -> Path:
-    """The temporary file beside `path` that a process writes before renaming: .NAME.tmp-PID."""
-    return path.with_name(f".{path.name}.tmp-{os.getpid() if pid is None else pid}")
+def temporary_name(path: Path) -> Path:
+    """The temporary file beside `path` this process writes before renaming: .NAME.tmp-PID."""
+    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
 
 
 def remove_stale_temporaries(path) -> list[Path]:

@@ -140,7 +140,8 @@ def crlb_at_unit_snr_m(frequencies_hz, order: int = 1) -> float:
     depth file records; a pixel's CRLB is this over √snr, whatever estimator ran: with a = 2·A·w
     the tone's amplitude, a²/(2σ²)·Σ(2π·k·f_m)² = 2·snr/N·Σ(2π·k·f_m)² for order k."""
     f = np.asarray(frequencies_hz, np.float64)
-    return float(C / 2 / np.sqrt(2 / f.size * np.sum((2 * np.pi * order * f) ** 2)))
+    # snr = 1 is a²/σ² = 4/N: amplitude 2 over noise variance N
+    return float(phase_locked_sigma_m(np.sum((2 * np.pi * order * f) ** 2), 2.0, float(f.size)))
 
 
 def crlb_phase_locked_m(frequencies_hz, tone_amplitude, noise_sigma) -> float:

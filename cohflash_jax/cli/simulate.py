@@ -97,6 +97,7 @@ TARGET_PARAMETERS = ("distance_m", "reflectance")
 
 def design_point(args) -> dict:
     """The design point (paper units) that --design and --set give, --set last; {} for neither."""
+    from ..design.report import optimum_point
     from ..fileio import read_json
     from .sweep import assignments
 
@@ -107,19 +108,7 @@ def design_point(args) -> dict:
             raise ValueError(f"{args.design}: not a design JSON from `cohflash design` (no variables/problem)")
         if not doc.get("feasible", True):
             raise ValueError(f"{args.design}: the design is not feasible ({doc.get('note')}): nothing to simulate")
-        v, problem = doc["variables"], doc["problem"]
-        point = {
-            "start_ghz": v["start_hz"] / 1e9,
-            "step_mhz": v["step_hz"] / 1e6,
-            "num_steps": doc["num_frames"],
-            "probe_power_mw": v["probe_power_w"] * 1e3,
-            "exposure_ms": v["exposure_s"] * 1e3,
-            "modulation_index": v["modulation_index"],
-            "bias_rad": v["bias_rad"],
-            "frame_rate_hz": problem["frame_rate_hz"],
-            "distance_m": problem["distance_m"],
-            "reflectance": problem["reflectance"],
-        }
+        point = optimum_point(doc["variables"], doc["num_frames"], doc["problem"])
     given = assignments(args.set)
     if "range_falloff" in given:
         raise ValueError("range_falloff is an effect of the simulation: list it in --effects instead of --set")
@@ -134,7 +123,7 @@ def scene_from_args(args, point: dict | None = None):
     from ..scenes import BUILTIN_SCENES, from_files, get_scene, planar
 
     target = {k: v for k, v in (point or {}).items() if k in TARGET_PARAMETERS}
-    tilted = getattr(args, "tilt_m", (0.0, 0.0)) != (0.0, 0.0)
+    tilted = args.tilt_m != (0.0, 0.0)
     if args.scene == "file":
         if target:
             raise ValueError(

@@ -31,8 +31,9 @@ def monte_carlo(point: dict, trials: int = 256, seed: int = 0, frequencies_hz=No
     options = ReconstructOptions(method="ml", progress=False)
     out = reconstruct_array(frames, inst, options)
     ok = out["valid"]
+    policy = build_plan(inst, options).policy
     # beyond the unambiguous window the instrument measures the folded depth: that is its truth
-    start, end = build_plan(inst, options).policy.valid_window_m
+    start, end = policy.valid_window_m
     truth_m = start + (p["distance_m"] - start) % (end - start)
     err = out["depth_m"][ok] - truth_m
     return {
@@ -41,11 +42,11 @@ def monte_carlo(point: dict, trials: int = 256, seed: int = 0, frequencies_hz=No
         "mc_valid_fraction": float(ok.mean()),
         "mc_trials": int(side * side),
         "mc_truth_m": truth_m,
-        "mc_note": no_valid_reason(out, build_plan(inst, options)) if not ok.any() else "",
+        "mc_note": no_valid_reason(out, policy.snr_threshold) if not ok.any() else "",
     }
 
 
-def no_valid_reason(out: dict, plan) -> str:
+def no_valid_reason(out: dict, snr_threshold: float) -> str:
     """Why a Monte Carlo found no valid pixel: the commonest status, and the median SNR against
     the threshold applied."""
     from ..status import Status
@@ -53,7 +54,7 @@ def no_valid_reason(out: dict, plan) -> str:
     status = np.bincount(out["fit_status"].astype(int).ravel(), minlength=len(Status))
     worst = Status(int(np.argmax(status)))
     snr_db = 10 * np.log10(max(float(np.median(out["snr"])), 1e-30))
-    threshold_db = 10 * math.log10(plan.policy.snr_threshold)
+    threshold_db = 10 * math.log10(snr_threshold)
     return (
         f"no valid pixel: mostly {worst.message} ({status[worst]} of {out['fit_status'].size}); "
         f"median SNR {snr_db:.1f} dB against the {threshold_db:.1f} dB threshold"

@@ -17,18 +17,24 @@ DESIGN_FORMAT = "cohflash-design"
 
 def design_point(result: DesignResult, problem: DesignProblem) -> dict:
     """The optimum as a sweep/Monte Carlo point (paper units)."""
-    v = result.variables
+    return optimum_point(result.variables, result.num_frames, dataclasses.asdict(problem))
+
+
+def optimum_point(variables: dict, num_frames: int, problem: dict) -> dict:
+    """A design's optimum (its SI `variables`, frame count and problem, as a design JSON holds
+    them) as a sweep/Monte Carlo point (paper units)."""
+    v = variables
     return {
         "start_ghz": v["start_hz"] / 1e9,
         "step_mhz": v["step_hz"] / 1e6,
-        "num_steps": result.num_frames,
-        "distance_m": problem.distance_m,
-        "reflectance": problem.reflectance,
+        "num_steps": num_frames,
+        "distance_m": problem["distance_m"],
+        "reflectance": problem["reflectance"],
         "probe_power_mw": v["probe_power_w"] * 1e3,
         "exposure_ms": v["exposure_s"] * 1e3,
         "modulation_index": v["modulation_index"],
         "bias_rad": v["bias_rad"],
-        "frame_rate_hz": problem.frame_rate_hz,
+        "frame_rate_hz": problem["frame_rate_hz"],
     }
 
 

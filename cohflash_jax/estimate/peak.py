@@ -55,8 +55,9 @@ class DFTPeak(AbstractDepthEstimator):
     Its error is the pixel's own quantisation offset, not a uniform draw: near the detection
     threshold the tones that pass sit nearer a bin's centre than uniform (scalloping lowers the
     power of those near an edge), so the rms of ±½ step, 1/√12, overstated σ by ~1.35× there.
-    σ is instead the rms error given the data: the offset δ of the interpolated peak from the
-    grid point, with the interpolation's own σ, √(δ² + σ_interp²). Within `MIRROR_EDGE_BINS`
+    σ is instead the error the data show: the offset δ of the interpolated peak from the grid
+    point, floored by the interpolation's own σ, max(|δ|, σ_interp) (√(δ² + σ_interp²) counted
+    the interpolation's noise twice: pulls 0.68–0.93). Within `MIRROR_EDGE_BINS`
     of either end of the grid the mirror image pulls the interpolation (module docstring), so
     there δ is taken as uniform within ±½ step, rms 1/√12."""
 
