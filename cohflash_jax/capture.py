@@ -19,12 +19,12 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-from tqdm.auto import tqdm
 
 from .fileio import atomic_path
 from .hybrid import NOMINAL_PHASES_RAD, Hybrid
 from .instrument import DEFAULT_FIELD_OF_VIEW_DEG, Instrument
 from .modulator import MZM
+from .progress import progress_bar
 from .sensor import Sensor
 from .sweep import FrequencySweep
 
@@ -113,7 +113,7 @@ def write_capture(
         f.create_dataset("hybrid_phases_rad", data=phases)
         if dark is not None:
             f.create_dataset("dark", data=np.asarray(dark, np.float32))
-        with tqdm(total=n, unit="frame", desc=f"writing {path.name}", disable=not progress) as bar:
+        with progress_bar(total=n, unit="frame", desc=f"writing {path.name}", disable=not progress) as bar:
             written = 0
             for m0, m1, block in chunks:
                 if block.shape != (4, m1 - m0, height, width):

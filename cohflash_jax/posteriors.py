@@ -56,7 +56,7 @@ def run_pixels(
 
     Frames of each pixel are read on their own (4 × N values), so any set of pixels costs
     what it reads. `chains_path` keeps every chain in emcee's HDF5 backend, one group per pixel."""
-    from tqdm.auto import tqdm
+    from .progress import progress_bar
 
     check_max_steps(max_steps)
     n, h, w = capture.shape
@@ -89,7 +89,7 @@ def run_pixels(
     rng = np.random.default_rng(seed)
     g = plan.geometry
     results = []
-    for p in tqdm(usable, unit="px", desc="posterior", disable=not progress):
+    for p in progress_bar(usable, unit="px", desc="posterior", disable=not progress):
         r, c = pixels[p]
         d = jax.tree_util.tree_map(lambda x, p=p: x[p], data)
         backend = None if chains_path is None else emcee.backends.HDFBackend(str(chains_path), name=f"pixel_{r}_{c}")

@@ -15,10 +15,10 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from tqdm.auto import tqdm
 
 from ..fileio import atomic_path
 from ..fisher import depth_crlb_m
+from ..progress import progress_bar
 from .monte_carlo import monte_carlo
 from .parameters import PARAMETERS, ambiguity_m, complete_point, design_instrument, to_si
 
@@ -271,7 +271,7 @@ def run_sweep(
         else None
     )
     try:
-        with tqdm(
+        with progress_bar(
             total=len(points), initial=len(points) - len(todo), desc="sweep", unit="pt", disable=not progress
         ) as bar:
             for start in range(0, len(todo), chunk):

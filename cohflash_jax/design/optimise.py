@@ -22,11 +22,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from tqdm.auto import tqdm
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import SENSOR_NOISE, depth_crlb_m
 from ..instrument import Instrument
+from ..progress import progress_bar
 from .parameters import design_instrument
 from .problem import DesignProblem, decode, schedule
 
@@ -310,7 +310,7 @@ def optimise_design(problem: DesignProblem, progress: bool = True) -> DesignResu
         )
     best = (hi, z_hi, ev_hi)
     steps = int(math.ceil(math.log2(hi - lo + 1)))
-    with tqdm(total=steps, desc="design (bisection over N)", disable=not progress) as bar:
+    with progress_bar(total=steps, desc="design (bisection over N)", disable=not progress) as bar:
         while hi - lo > 1:
             mid = (lo + hi) // 2
             z, ev = solve_for_n(mid, n_cap, problem, best[1])

@@ -10,13 +10,13 @@ import math
 import time
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from ..calibration_file import Calibration, CaptureSetup, PixelMaps
 from ..capture import Capture, CaptureError
 from ..estimate.drift import CarrierAlignment, choose_carrier_alignment
 from ..fisher import crlb_at_unit_snr_m
 from ..instrument import Instrument
+from ..progress import progress_bar
 from ..runtime import retain_freed_memory
 from .engine import BlockReader, TileDispatcher, sub_tile_pixels
 from .plan import TilePlan, build_plan, frequency_path
@@ -167,7 +167,7 @@ def reconstruct_capture(
     alignment = align_carrier(options, instrument, first[1], first[3], first[4])
     plan = build_plan(instrument, options, saturation, tracking=alignment.tracking)
     dispatcher = TileDispatcher(plan, sub_tile_pixels(rows * w, n), alignment.phase_rad)
-    with tqdm(total=h * w, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True) as bar:
+    with progress_bar(total=h * w, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True) as bar:
         pending = None
         for r0 in range(0, h, rows):
             r1, block, data_status, d, g = first if r0 == 0 else tile_inputs(r0)
