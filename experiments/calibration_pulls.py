@@ -13,7 +13,8 @@ Targets (uniform reflectance 0.9 at 30.5 m, the instrument's errors of the hybri
 - `uneven`: a diffuse board; depths scattered ±1 mm about 30.5 m, every pixel its own carrier
   phase.
 Conditions: `turbulence` (a drifting carrier: the hybrid is identifiable) and `static` (only β,
-the roll-off and τ_sys are). Writes calibration_pulls.csv (one row per seed and parameter) and
+the roll-off and τ_sys are). A calibration that refuses the capture (e.g. a drift it cannot
+separate on the flat target) is counted as `refused`. Writes calibration_pulls.csv (one row per seed and parameter) and
 calibration_pulls.md (per target, condition and parameter: seeds, pull mean, pull std, largest
 |pull|; the issue's bar is a mean within 0.3 and a std within 20 % of 1).
 """
@@ -27,7 +28,7 @@ import numpy as np
 
 import cohflash_jax as cf
 from cohflash_experiments import study_parser
-from cohflash_jax.capture import Capture
+from cohflash_jax.capture import Capture, CaptureError
 from cohflash_jax.fileio import write_csv
 from cohflash_jax.hybrid_fit import calibrate_hybrid
 from cohflash_jax.simulate import simulate_to_file
@@ -94,7 +95,14 @@ def run(out: Path, seeds: int, size: int, targets, conditions):
                     simulate_to_file(path, scene, inst, size, size, seed=seed, progress=False)
                     with Capture(path) as cap:
                         truth = cap.truth_attrs
-                    doc = calibrate_hybrid(path, known_distance_m=DISTANCE_M, progress=False)["document"]
+                    try:
+                        doc = calibrate_hybrid(path, known_distance_m=DISTANCE_M, progress=False)["document"]
+                    except CaptureError as e:  # a refused calibration is an outcome, counted
+                        rows.append(
+                            {"target": name, "condition": condition, "seed": seed, "parameter": "refused", "pull": 1.0}
+                        )
+                        print(f"{name} {condition} seed {seed}: refused ({e})", flush=True)
+                        continue
                     for parameter, pull in pulls(doc, truth).items():
                         rows.append(
                             {"target": name, "condition": condition, "seed": seed, "parameter": parameter, "pull": pull}
@@ -108,6 +116,9 @@ def run(out: Path, seeds: int, size: int, targets, conditions):
     keys = dict.fromkeys((r["target"], r["condition"], r["parameter"]) for r in rows)
     for key in keys:
         p = np.array([r["pull"] for r in rows if (r["target"], r["condition"], r["parameter"]) == key])
+        if key[2] == "refused":
+            md.append(f"| {key[0]} | {key[1]} | refused (the capture's reason) | {p.size} | | | |")
+            continue
         stats = f"{p.size} | {p.mean():+.2f} | {p.std(ddof=1):.2f} | {np.abs(p).max():.2f}"
         md.append(f"| {key[0]} | {key[1]} | {key[2]} | {stats} |")
     (out / "calibration_pulls.md").write_text("\n".join(md) + "\n")

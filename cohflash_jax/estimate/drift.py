@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import jax.numpy as jnp
 import numpy as np
 
 from .iq import DRIFT_WINDOW_FRAMES, iq_from_frames, moving_average
@@ -24,9 +23,11 @@ DRIFT_DETECTION_FACTOR = 3.0
 DRIFT_MIN_WINDOWS = 4
 DRIFT_MAX_CIRCLE_SPREAD = 0.3
 # A drift is kept only where the tones' axis turns by more than this, rms over stretches of a
-# window (`tone_axis_rotation`; measured: 0.01–0.02 rad on static captures, 0.23–0.26 under the
-# simulator's default turbulence)
+# window (`tone_axis_rotation`; measured on 16×16-px calibration captures: 0.01 rad on static
+# ones, 0.49–1.21 under the simulator's default turbulence, tracking the drift's own rms)
 DRIFT_MIN_AXIS_TURN_RAD = 0.08
+# half-width (bins) of the band around each pixel's tone that the drift test looks at
+TONE_HALF_WIDTH_BINS = 16
 
 
 def initial_common_drift(i, q, window_frames: int = DRIFT_WINDOW_FRAMES) -> tuple[np.ndarray, str]:
@@ -72,22 +73,40 @@ def initial_common_drift(i, q, window_frames: int = DRIFT_WINDOW_FRAMES) -> tupl
     return phi - phi.mean(), f"common carrier drift found (rms {np.std(phi):.2f} rad)"
 
 
+def tone_sequences_only(z: np.ndarray, half_width_bins: int = TONE_HALF_WIDTH_BINS) -> np.ndarray:
+    """Each pixel's tone alone: the bins within ±`half_width_bins` of its strongest bin away
+    from DC (and of that bin's mirror, where a real tone's other half lies), transformed back.
+
+    A moving average would also pass the mean term's drift-induced wobble, z_mean·e^{iφ}·iδφ,
+    which squares to the *opposite* axis of the tone's and is comparable to it (w_0 ≈ 3 w_1
+    at β = 2): under a strong drift it cancelled the tone's turn (measured: 0.05 rad rms
+    against a drift of 1.1 rad). The drift broadens the tone by about a bin; the window keeps
+    its wings."""
+    n = z.shape[0]
+    spectrum = np.fft.fft(z, axis=0)
+    k = np.fft.fftfreq(n, 1.0 / n)  # signed bin index
+    away = np.abs(k) > 2 * half_width_bins
+    peak = np.argmax(np.where(away[:, None], np.abs(spectrum), -1.0), axis=0)  # (P,)
+    distance = lambda centre: np.abs((k[:, None] - k[centre][None, :] + n / 2) % n - n / 2)
+    keep = (distance(peak) <= half_width_bins) | (distance((n - peak) % n) <= half_width_bins)
+    return np.fft.ifft(np.where(keep, spectrum, 0.0), axis=0)
+
+
 def tone_axis_rotation(z: np.ndarray, phi: np.ndarray, segment_frames: int = DRIFT_WINDOW_FRAMES):
     """(rms turn of the tones' axis, rms turn of φ) over stretches of `segment_frames` frames (short
     enough that the doubled angle turns by less than π between neighbours: unwrapped).
 
-    A carrier drift turns the whole of each pixel's Z, its tone too: the tone part (Z less its
-    moving average) lies along z_p·e^{iφ}, so its axis, ½·arg Σ fast², follows φ from stretch to
-    stretch, in every pixel alike. A slow amplitude change of the mean term (the modulator's
-    roll-off of w_0 along the sweep) traces a line the circle fit can take for an arc, but
-    turns no tone."""
-    fast = z - moving_average(z, DRIFT_WINDOW_FRAMES)
+    A carrier drift turns the whole of each pixel's Z, its tone too: the tone (`tone_sequences_only`)
+    lies along z_p·e^{iφ}, so its axis, ½·arg Σ tone², follows φ from stretch to stretch, in every
+    pixel alike. A slow amplitude change of the mean term (the modulator's roll-off of w_0 along
+    the sweep) traces a line the circle fit can take for an arc, but turns no tone."""
+    tone = tone_sequences_only(z)
     edges = np.linspace(0, z.shape[0], max(2, z.shape[0] // segment_frames) + 1).astype(int)
-    whole = np.sum(fast**2, axis=0)
+    whole = np.sum(tone**2, axis=0)
     reference = np.conj(whole) / np.maximum(np.abs(whole), 1e-300)
     turns, phases = [], []
     for a, b in zip(edges[:-1], edges[1:]):
-        part = np.sum(fast[a:b] ** 2, axis=0) * reference  # this stretch's axis against the whole's, doubled
+        part = np.sum(tone[a:b] ** 2, axis=0) * reference  # this stretch's axis against the whole's, doubled
         turns.append(0.5 * np.angle(np.sum(part)))
         phases.append(np.mean(phi[a:b]))
     turns, phases = np.unwrap(2 * np.asarray(turns)) / 2, np.asarray(phases)
@@ -145,11 +164,11 @@ def choose_carrier_alignment(
         return CarrierAlignment("static", f"auto: {n} frames are too few to look for a carrier drift")
     # the strongest mean terms, from the frames' means (I/Q is linear in the frames)
     means = np.mean(frames, axis=1, dtype=np.float64)[:, None]  # (4, 1, P)
-    pick = lambda a, idx: None if a is None else jnp.asarray(np.asarray(a, np.float32)[:, idx])
+    # in NumPy: a one-off survey, with no programs to compile or load in a fresh process
+    pick = lambda a, idx: None if a is None else np.asarray(a, np.float32)[:, idx]
     everywhere = slice(None)
-    i0, q0 = iq_from_frames(
-        jnp.asarray(means, jnp.float32), iq_weights, iq_bias, pick(dark, everywhere), pick(gain, everywhere)
-    )
+    weights, bias = np.asarray(iq_weights), np.asarray(iq_bias)
+    i0, q0 = iq_from_frames(means.astype(np.float32), weights, bias, pick(dark, everywhere), pick(gain, everywhere))
     with np.errstate(invalid="ignore"):  # a pixel with a NaN frame has a NaN mean: left out
         strength = np.abs(np.asarray(i0[0], np.float64) + 1j * np.asarray(q0[0], np.float64))
     strength = np.where(np.isfinite(strength), strength, -1.0)
@@ -157,8 +176,8 @@ def choose_carrier_alignment(
     keep = keep[strength[keep] >= 0]
     if keep.size < 2:
         return CarrierAlignment("static", "auto: too few finite pixels to look for a carrier drift")
-    x = jnp.asarray(np.asarray(frames[..., keep], np.float32))
-    i, q = iq_from_frames(x, iq_weights, iq_bias, pick(dark, keep), pick(gain, keep))
+    x = np.asarray(frames[..., keep], np.float32)
+    i, q = iq_from_frames(x, weights, bias, pick(dark, keep), pick(gain, keep))
     i, q = np.asarray(i, np.float64), np.asarray(q, np.float64)
     phase, note = initial_common_drift(i, q)
     if np.any(phase != 0):

@@ -18,7 +18,7 @@ from ..hybrid import Hybrid
 from ..status import Status
 from .common import MIN_FRAMES, MIN_PIXELS, Estimate, tone_sequences
 from .hybrid_stage import common_carrier, fit_hybrid, fit_offsets, pixel_statistics
-from .modulator_stage import fit_modulator
+from .modulator_stage import exact_model_depths_m, fit_modulator
 
 # Survey statuses of pixels a calibration may use. dc_edge pixels are usable: through an
 # uncalibrated hybrid the untracked turbulent carrier makes the survey's mean term wander near
@@ -64,6 +64,9 @@ def read_mean_frame(path) -> np.ndarray:
             total += block.sum(axis=1)
         return total / n
 
+
+# runs of frames the modulator's block jackknife leaves out in turn (`block_jackknife_sigma`)
+MODULATOR_JACKKNIFE_BLOCKS = 16
 
 # |mean of z_p/|z_p|| over the calibration pixels above which the hybrid is not identified
 MAX_CARRIER_PHASE_COHERENCE = 0.5
@@ -146,7 +149,19 @@ def calibrate_hybrid(
         )
         return out["depth_m"][0], out["fit_status"][0]
 
-    for _ in range(iterations):
+    def aligned_sequences(hyb, carrier, uncentred):
+        """Carrier-aligned sequences r (N, P) and their noise variances through `hyb`, the
+        drift removed. A time-domain fit needs the uncentred I/Q where the hybrid (offsets
+        included) is calibrated: a mean removed before derotation would wander after it, and
+        pass for a roll-off; a calibrated hybrid cancels the common mode, so no leakage."""
+        source = data + jnp.asarray(port_means)[:, None] if uncentred else data
+        i, q = iq_from_frames(source, *hyb.iq_matrix_dn(1.0))
+        i, q = derotate(i, q, jnp.asarray(carrier)[:, None])
+        r, noise_var, _ = align_carrier_static(i, q)
+        return np.asarray(r), np.asarray(noise_var)
+
+    for iteration in range(iterations):
+        last_pass = iteration == iterations - 1
         depth, status = reconstruct_selected(hybrid, modulator, drift)
         good = np.flatnonzero(status == Status.OK)
         if good.size < MIN_PIXELS:
@@ -155,7 +170,8 @@ def calibrate_hybrid(
                 "flat to a fraction of the wavelength facing the camera (one carrier phase in every pixel) leaves "
                 "that drift undetermined; tilt it by a few wavelengths across the view or use a diffuse target"
                 if drifting
-                else "too little signal to calibrate"
+                else f"too little signal, or a carrier drift the survey did not accept ({drift_note}); a "
+                "turbulent capture whose drift is missed cannot be calibrated"
             )
             raise CaptureError(f"{capture_path}: only {good.size} of {p} pixels reconstruct validly: {why}")
         tone = tone_sequences(freqs, 2 * depth / C, modulator)
@@ -170,24 +186,18 @@ def calibrate_hybrid(
         if drifting:
             drift = np.unwrap(np.angle(np.asarray(u)))
             drift = drift - np.mean(drift)
-        # stage 2 on the strongest pixels, with the current hybrid and drift. The time-domain
-        # fit needs the uncentred I/Q (a mean removed before derotation would wander after it,
-        # and pass for a roll-off); a calibrated hybrid cancels the common mode, so no leakage.
+        # stage 2 on the strongest pixels, with the current hybrid and drift
         if fit.identified:
             offsets = fit_offsets(port_means[:, good], stats, fit, None)[0]
             hybrid = Hybrid(tuple(fit.phases_rad), tuple(fit.relative_gains), tuple(offsets))
-            source = data + jnp.asarray(port_means)[:, None]
-        else:
-            source = data
-        iq_w, iq_b = hybrid.iq_matrix_dn(1.0)
-        i, q = iq_from_frames(source, iq_w, iq_b)
-        i, q = derotate(i, q, jnp.asarray(drift)[:, None])
-        r, noise_var, _ = align_carrier_static(i, q)
+        r, noise_var = aligned_sequences(hybrid, drift, fit.identified)
         amp = np.zeros(p)
         amp[good] = np.abs(fit.amplitudes)
         strongest = good[np.argsort(-amp[good])][:modulator_pixels]
+        # under a drift, the σ of the last pass also from a block jackknife over the frames
+        blocks = MODULATOR_JACKKNIFE_BLOCKS if drifting and last_pass else None
         mod_fit = fit_modulator(
-            freqs, np.asarray(r)[:, strongest], np.asarray(noise_var)[strongest], 2 * depth[strongest] / C, modulator
+            freqs, r[:, strongest], noise_var[strongest], 2 * depth[strongest] / C, modulator, blocks
         )
         modulator = mod_fit.modulator
     coherence = carrier_phase_coherence(fit.amplitudes)
@@ -232,7 +242,10 @@ def calibrate_hybrid(
     elif ok.sum() < MIN_PIXELS:
         delay_est = Estimate(None, None, f"only {int(ok.sum())} pixels reconstructed validly")
     else:
-        d = depth[ok]
+        # the window fit's depths refined with the sideband weights at every frequency: their
+        # mean is what τ_sys needs to a fraction of its σ (`exact_model_depths_m`)
+        r, _ = aligned_sequences(hybrid, drift, fit.identified)
+        d = exact_model_depths_m(freqs, r[:, ok], depth[ok], modulator, float(instrument.system_delay_s))
         delay_est = Estimate(
             float(2 * (np.mean(d) - known_distance_m) / C), float(2 * np.std(d, ddof=1) / math.sqrt(d.size) / C)
         )

@@ -47,16 +47,30 @@ def residuals_and_jacobian(residual_fn, params, args):
     return residual_fn(params, args), jax.jacfwd(residual_fn)(params, args)
 
 
-def covariance(residual_fn, params, args, dof):
+def covariance(residual_fn, params, args, dof, clusters: int | None = None):
     """Covariance of least-squares parameters from the Jacobian at the optimum,
     (JᵀJ)⁻¹·χ²/dof (residuals whitened by the measured noise), with χ², whether JᵀJ is
-    singular (an unidentifiable direction: its variances are then ∞) and the Jacobian."""
+    singular (an unidentifiable direction: its variances are then ∞) and the Jacobian.
+
+    `clusters`: the residuals come in that many consecutive groups whose errors may be
+    correlated within a group (the frames of a calibration: a common carrier-drift error moves
+    every pixel of a frame alike, which the per-pixel noise model does not count). Each
+    variance is then the larger of the model's and the cluster-robust (sandwich) one,
+    (JᵀJ)⁻¹ (Σ_g s_g s_gᵀ) (JᵀJ)⁻¹ with s_g the group's score Σ J·r, which holds for any
+    correlation within a group given many groups (the correlations are kept, the standard
+    deviations scaled)."""
     res, jac = residuals_and_jacobian(residual_fn, params, args)
     chi2 = float(jnp.sum(res**2))
     jtj = np.asarray(jac.T @ jac)
     evals = np.linalg.eigvalsh(jtj)
     singular = evals[0] <= 1e-12 * max(evals[-1], 1e-300)
-    cov = np.linalg.pinv(jtj) * max(chi2 / max(dof, 1), 1e-300)
+    inverse = np.linalg.pinv(jtj)
+    cov = inverse * max(chi2 / max(dof, 1), 1e-300)
+    if clusters is not None and clusters > jtj.shape[0]:
+        scores = np.asarray(jnp.sum((jac * res[:, None]).reshape(clusters, -1, jac.shape[1]), axis=1))
+        robust = inverse @ (scores.T @ scores) @ inverse * clusters / (clusters - jtj.shape[0])
+        inflate = np.sqrt(np.maximum(np.diag(robust) / np.maximum(np.diag(cov), 1e-300), 1.0))
+        cov = cov * inflate[:, None] * inflate[None, :]
     if singular:
         cov = cov + np.diag(np.where(np.diag(jtj) <= 0, np.inf, 0.0))
     return cov, chi2, singular, np.asarray(jac)
