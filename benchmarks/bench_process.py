@@ -6,7 +6,9 @@ timed beside two references in the same session, interleaved round by round:
 - a plain NumPy script: read, I/Q from the nominal hybrid, the principal axis per pixel, rFFT
   over the frames, argmax → depth (no validity, no σ);
 - `cohflash reconstruct CAPTURE --out … --quiet` for each method asked, with the compilation
-  cache warm (a run before the rounds filled it) and cold (an empty cache folder each time).
+  cache warm (a run before the rounds filled it) and cold (an empty cache folder each time);
+- the same on a small capture (16×16 pixels, 3000 frames: a user's region of interest), where
+  start-up is everything.
 
 Prints the CPU model, its vector ISA (and XLA_FLAGS, e.g. --xla_cpu_max_isa=AVX2), the JAX and
 jaxlib versions, each row's median over the rounds and its ratio to the floor and to the NumPy
@@ -97,17 +99,22 @@ def main():
     p.add_argument("--methods", default="ml,dft", help="comma-separated estimators to time")
     p.add_argument("--no-cold", action="store_true", help="skip the cold-cache runs")
     args = p.parse_args()
+    with tempfile.TemporaryDirectory(prefix="cohflash-bench-process-") as tmp:
+        run(args, Path(tmp))
 
+
+def run(args, folder: Path):
     import jax
     import jaxlib
 
-    folder = Path(tempfile.mkdtemp(prefix="cohflash-bench-process-"))
     capture = args.capture
     cli = [sys.executable, "-m", "cohflash_jax.cli"]
     if capture is None:
         capture = str(folder / "traffic.h5")
         effects = "shot_noise,read_noise,quantization,sidebands"
         subprocess.run([*cli, "simulate", "traffic", "--out", capture, "--effects", effects, "--quiet"], check=True)
+    small = str(folder / "small.h5")  # an ROI: 16×16 pixels, 3000 frames
+    subprocess.run([*cli, "simulate", "planar", "--size", "16x16", "--out", small, "--quiet"], check=True)
     scripts = {"read once (floor)": READ_ONCE, "NumPy script": NUMPY_SCRIPT}
     for name, text in scripts.items():
         (folder / f"{name.split()[0]}.py").write_text(text)
@@ -116,6 +123,7 @@ def main():
     methods = args.methods.split(",")
     for m in methods:  # fill the warm cache
         timed([*cli, "reconstruct", capture, "--out", str(folder / "d.h5"), "--method", m, "--quiet"], env_warm)
+    timed([*cli, "reconstruct", small, "--out", str(folder / "s.h5"), "--quiet"], env_warm)
 
     rows: dict[str, list[float]] = {}
     ratios: dict[str, list[tuple[float, float]]] = {}
@@ -129,6 +137,12 @@ def main():
             if not args.no_cold:
                 cold = os.environ | {"COHFLASH_JAX_CACHE": str(folder / f"cache-cold-{m}-{r}")}
                 this[f"cohflash reconstruct --method {m}, cold cache"] = timed(argv, cold)
+        argv = [*cli, "reconstruct", small, "--out", str(folder / "s.h5"), "--quiet"]
+        this["small capture 16×16×3000 (ml), warm cache"] = timed(argv, env_warm)
+        if not args.no_cold:
+            this["small capture 16×16×3000 (ml), cold cache"] = timed(
+                argv, os.environ | {"COHFLASH_JAX_CACHE": str(folder / f"cache-cold-small-{r}")}
+            )
         for name, seconds in this.items():
             rows.setdefault(name, []).append(seconds)
             floor, numpy = this["read once (floor)"], this["NumPy script"]

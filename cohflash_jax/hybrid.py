@@ -7,6 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .xp import namespace
+
 NOMINAL_PHASES_RAD = (0.0, np.pi / 2, np.pi, 3 * np.pi / 2)
 
 
@@ -50,16 +52,18 @@ class Hybrid(eqx.Module):
         term C is estimated and discarded, so common-mode signals cancel for any four
         distinct phases. Nominal phases give I = v_0 − v_2, Q = v_3 − v_1.
         """
-        theta = jnp.asarray(self.phases_rad, dtype=jnp.float64)
-        design = jnp.stack([jnp.full(4, 0.25), 0.5 * jnp.cos(theta), -0.5 * jnp.sin(theta)], axis=1)
-        return jnp.linalg.pinv(design)[1:]
+        xp = namespace(self.phases_rad)
+        theta = xp.asarray(self.phases_rad, dtype=xp.float64)
+        design = xp.stack([xp.full(4, 0.25), 0.5 * xp.cos(theta), -0.5 * xp.sin(theta)], axis=1)
+        return xp.linalg.pinv(design)[1:]
 
     def iq_matrix_dn(self, dn_per_electron: float = 1.0) -> tuple[Array, Array]:
         """(W, b) with [I, Q] = W @ DN + b in electrons, folding per-CCD gain and offset."""
+        xp = namespace(self.phases_rad, self.relative_gains, self.offsets_dn, dn_per_electron)
         weights = self.iq_weights()
-        gains = jnp.asarray(self.relative_gains, dtype=jnp.float64) * dn_per_electron
+        gains = xp.asarray(self.relative_gains, dtype=xp.float64) * dn_per_electron
         w = weights / gains[None, :]
-        b = -w @ jnp.asarray(self.offsets_dn, dtype=jnp.float64)
+        b = -w @ xp.asarray(self.offsets_dn, dtype=xp.float64)
         return w, b
 
     def conditioning(self) -> float:

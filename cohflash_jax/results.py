@@ -49,7 +49,10 @@ def write_depth(path, outputs: dict, meta: dict, provenance: dict) -> Path:
         f.attrs["provenance"] = json.dumps(provenance, default=str)
         for name, dtype in _DTYPES.items():
             if name in outputs:
-                f.create_dataset(name, data=stored_as(outputs[name], dtype), compression="gzip")
+                # gzip for the status maps (mostly one value); measured noise-like floats shrink
+                # by 15 % for 10× the time (60 of 69 ms a full-frame depth file)
+                small_ints = np.dtype(dtype).kind in "iub"
+                f.create_dataset(name, data=stored_as(outputs[name], dtype), compression="gzip" if small_ints else None)
     return path
 
 

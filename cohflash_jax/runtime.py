@@ -5,10 +5,17 @@ from __future__ import annotations
 import ctypes
 import os
 import sys
+import time
 from pathlib import Path
+
+import numpy as np
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc mallopt parameters (malloc.h)
 _applied = False
+
+# bound of JAX's own compilation cache (least recently used out); the executable cache has its
+# own (`ExecutableCache.MAX_BYTES`)
+XLA_CACHE_MAX_BYTES = 512 * 2**20
 
 
 def async_filter_jit(fun):
@@ -17,24 +24,234 @@ def async_filter_jit(fun):
     call to finish (it blocks on a marker output, for its runtime-error reporting), so a
     pipeline of filter-jitted programs never overlapped file reads and host copies with
     computation. Outputs: arrays only; no runtime errors are raised from inside, so
-    `eqx.error_if` does not belong in `fun`."""
+    `eqx.error_if` does not belong in `fun`.
+
+    Each program (one per static half and argument shapes, types and devices) is compiled
+    once per process, and where the executable cache is on (`enable_compilation_cache`) it is
+    loaded from disk in later processes without tracing or lowering `fun` at all
+    (`ExecutableCache`)."""
     import functools
 
     import equinox as eqx
     import jax
 
-    @functools.partial(jax.jit, static_argnums=0)
-    def run(static, dynamic):
-        args, kwargs = eqx.combine(dynamic, static)
-        return fun(*args, **dict(kwargs))
+    programs = {}
+
+    @functools.cache
+    def traced(static, treedef):
+        """The program as a plain `jax.jit`, for calls under another transformation (a
+        compiled executable takes concrete arrays only)."""
+
+        def flat(*xs):
+            a, k = eqx.combine(jax.tree.unflatten(treedef, xs), static)
+            return fun(*a, **dict(k))
+
+        return jax.jit(flat)
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
         # keyword arguments as a tuple of pairs: the static half must be hashable
         dynamic, static = eqx.partition((args, tuple(sorted(kwargs.items()))), eqx.is_array)
-        return run(static, dynamic)
+        leaves, treedef = jax.tree.flatten(dynamic)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):  # inside another transformation
+            return traced(static, treedef)(*leaves)
+        signature = tuple(_argument_signature(x) for x in leaves)
+        key = (static, treedef, signature)
+        program = programs.get(key)
+        if program is None:
+
+            def flat(*xs):
+                a, k = eqx.combine(jax.tree.unflatten(treedef, xs), static)
+                return fun(*a, **dict(k))
+
+            program = programs[key] = EXECUTABLES.program(fun, flat, (static, treedef, signature), leaves)
+        return program(*leaves)
 
     return call
+
+
+def _argument_signature(x):
+    """What a compiled program depends on in an argument: shape, dtype, weak type and, for a
+    placed array, its sharding (device). Read from the attributes: `jax.typeof` cost ~40 µs
+    an argument, ~0.2 s a second over the 10 Hz mode's calls."""
+    if isinstance(x, np.ndarray):
+        return (x.shape, str(x.dtype), False, None)
+    return (x.shape, str(x.dtype), bool(getattr(x, "weak_type", False)), getattr(x, "sharding", None))
+
+
+class ExecutableCache:
+    """Compiled programs kept on disk whole, keyed by everything that determines them.
+
+    JAX's persistent compilation cache saves XLA's compile, but a fresh process must still
+    trace and lower every program to find its key: on the full capture's `ml` programs that
+    was 1.4 s of tracing and 0.2 s of lowering in every run (docs/performance.md). Here the
+    key is computed without tracing: the function's module and name, the static half's
+    structure and values, the arguments' shapes, types and devices, the package's own source
+    (any edit to it changes every key), the JAX and jaxlib versions, the XLA flags, the 64-bit
+    setting and the CPU's features. A static half whose text is not stable across processes
+    (an object printed with its address) is not written to disk; programs that cannot be
+    serialised (closed-over constants) compile as usual. Entries are `<name>-<sha256>.exe`
+    pickles written atomically; the folder is bounded (`MAX_BYTES`, oldest used first out)."""
+
+    MAX_BYTES = 512 * 2**20
+
+    def __init__(self):
+        self.folder: Path | None = None
+        self._environment: str | None = None
+        self.loaded = self.compiled = 0  # programs this process loaded and compiled
+        self.load_seconds = self.compile_seconds = 0.0
+
+    def environment(self) -> str:
+        """The process-wide half of every key."""
+        if self._environment is None:
+            import hashlib
+            import platform
+
+            import jax
+            import jaxlib
+
+            source = hashlib.sha256()
+            package = Path(__file__).resolve().parent
+            for path in sorted(package.rglob("*.py")):
+                source.update(str(path.relative_to(package)).encode())
+                source.update(path.read_bytes())
+            cpu = ""
+            try:
+                for line in Path("/proc/cpuinfo").read_text().splitlines():
+                    if line.startswith(("flags", "model name", "Features")):
+                        cpu += line
+            except OSError:
+                cpu = platform.processor()
+            self._environment = "|".join(
+                (
+                    source.hexdigest(),
+                    jax.__version__,
+                    jaxlib.__version__,
+                    os.environ.get("XLA_FLAGS", ""),
+                    str(jax.config.jax_enable_x64),
+                    platform.machine(),
+                    hashlib.sha256(cpu.encode()).hexdigest(),
+                )
+            )
+        return self._environment
+
+    def key(self, fun, static, treedef, signature) -> str | None:
+        """The entry's file name, or None where the static half has no stable text."""
+        import hashlib
+
+        import jax
+
+        text = f"{str(jax.tree.structure(static))}{jax.tree.leaves(static)!r}"
+        if " at 0x" in text:
+            return None
+        shapes = repr([(shape, dtype, weak, None if sh is None else repr(sh)) for shape, dtype, weak, sh in signature])
+        whole = "|".join((self.environment(), fun.__module__, fun.__qualname__, text, str(treedef), shapes))
+        return f"{fun.__name__.strip('_')}-{hashlib.sha256(whole.encode()).hexdigest()[:40]}.exe"
+
+    def program(self, fun, flat, parts, leaves):
+        """The compiled `flat` for these leaves: from disk, else compiled (and written)."""
+        import pickle
+
+        import jax
+
+        jitted = jax.jit(flat)
+        name = self.key(fun, *parts) if self.folder is not None else None
+        if name is None:
+            return jitted
+        path = self.folder / name
+        if path.exists():
+            started = time.perf_counter()
+            try:
+                from jax.experimental.serialize_executable import deserialize_and_load
+
+                payload, in_tree, out_tree = pickle.loads(path.read_bytes())
+                devices = [d for x in leaves for d in getattr(x, "devices", lambda: ())()][:1] or None
+                program = deserialize_and_load(payload, in_tree, out_tree, execution_devices=devices)
+                os.utime(path)  # recently used: the bound removes the oldest first
+                self.loaded += 1
+                self.load_seconds += time.perf_counter() - started
+                return self._checked(program, path, lambda: self._compile(jitted, leaves, path))
+            except Exception:  # a damaged or foreign entry: compile afresh and replace it
+                path.unlink(missing_ok=True)
+        return self._compile(jitted, leaves, path)
+
+    def _checked(self, program, path: Path, recompile):
+        """`program`, whose first call waits for its result: an entry that loads but cannot
+        run (an executable missing a kernel reports so only when it runs) is removed and the
+        program compiled afresh, instead of failing the run."""
+        import jax
+
+        state = {"program": program, "checked": False}
+
+        def run(*xs):
+            if state["checked"]:
+                return state["program"](*xs)
+            state["checked"] = True
+            try:
+                return jax.block_until_ready(program(*xs))
+            except Exception:
+                path.unlink(missing_ok=True)
+                state["program"] = recompile()
+                return state["program"](*xs)
+
+        return run
+
+    def _compile(self, jitted, leaves, path: Path):
+        """Compile `jitted` for these leaves and write the executable to `path`."""
+        started = time.perf_counter()
+        try:
+            # an executable that came from JAX's own cache serialises without its kernels
+            # (measured: "Function wrapped_is-finite not found" when loaded in the next
+            # process), so this compile must not be served from there: a debugging option
+            # (how many buffers a buffer-assignment dump lists) with a value of its own gives
+            # it a key of its own in that cache
+            options = {"xla_debug_buffer_assignment_show_max": 1_000_000 + time.monotonic_ns() % 1_000_000_000}
+            compiled = jitted.lower(*leaves).compile(compiler_options=options)
+        except Exception:  # e.g. an argument jit accepts but lowering with it does not
+            return jitted
+        self.compiled += 1
+        self._write(path, compiled)
+        self.compile_seconds += time.perf_counter() - started
+        return compiled
+
+    def _write(self, path: Path, compiled):
+        import pickle
+
+        try:
+            from jax.experimental.serialize_executable import serialize
+
+            blob = pickle.dumps(serialize(compiled))
+        except Exception:  # not serialisable (closed-over constants, …): stays in this process
+            return
+        temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        try:
+            temporary.write_bytes(blob)
+            os.replace(temporary, path)
+        except OSError:
+            temporary.unlink(missing_ok=True)
+            return
+        self.bound()
+
+    def bound(self):
+        bound_folder(self.folder, "*.exe", self.MAX_BYTES)
+
+
+def bound_folder(folder: Path, pattern: str, max_bytes: int):
+    """Remove the files matching `pattern` in `folder`, oldest modified first, until those left
+    hold ≤ max_bytes (a cache's bound; entries in use are rewritten or touched)."""
+    try:
+        entries = sorted(folder.glob(pattern), key=lambda p: p.stat().st_mtime)
+        total = sum(p.stat().st_size for p in entries)
+        for p in entries:
+            if total <= max_bytes:
+                break
+            total -= p.stat().st_size
+            p.unlink(missing_ok=True)
+    except OSError:  # a cache that cannot be tidied is still a cache
+        pass
+
+
+EXECUTABLES = ExecutableCache()
 
 
 def use_cpu_streams(count: int = 2) -> int:
@@ -95,4 +312,12 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
         return None
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    # JAX's own bound needs the `filelock` package; the folder is bounded here instead
+    bound_folder(folder, "jit_*", XLA_CACHE_MAX_BYTES)
+    executables = folder / "executables"
+    try:
+        executables.mkdir(exist_ok=True)
+        EXECUTABLES.folder = executables
+    except OSError:
+        EXECUTABLES.folder = None
     return folder

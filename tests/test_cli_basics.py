@@ -226,3 +226,46 @@ def test_an_interrupted_sweep_keeps_every_finished_monte_carlo_point(tmp_path, m
     grid.run_sweep(axes, out, fixed={"num_steps": 64.0}, mc_all=True, progress=False)
     assert len(calls) == 3 + 2  # only the two unfinished points ran again
     assert all(r["mc_trials"] for r in csv.DictReader(open(out)))
+
+
+def test_stream_reconstructs_a_sequence_in_one_process_and_goes_on_past_a_bad_capture(tmp_path, capsys):
+    """`cohflash stream`: a depth file per capture, the rate in maps/s; a corrupt capture is
+    reported by name and the others are still written (exit status 1)."""
+    settings = (  # the 10 Hz mode (its unambiguous range is 0.44 m)
+        "num_steps=35,step_mhz=171.4,start_ghz=0.1714,exposure_ms=2,frame_rate_hz=350,probe_power_mw=158.6,"
+        "distance_m=0.3"
+    )
+    captures = []
+    for k in range(2):
+        captures.append(tmp_path / f"c{k}.h5")
+        _run(
+            [
+                "simulate",
+                "planar",
+                "--size",
+                "4x4",
+                "--set",
+                settings,
+                "--seed",
+                str(k),
+                "--out",
+                str(captures[k]),
+                "--quiet",
+            ],
+            capsys,
+        )
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(b"not HDF5")
+    out_dir = tmp_path / "maps"
+    assert main(["stream", str(captures[0]), str(bad), str(captures[1]), "--out-dir", str(out_dir)]) == 1
+    out, err = capsys.readouterr()
+    assert "bad.h5" in err and "1 of 3 captures failed" in err
+    assert "2 maps in" in out and "maps/s" in out
+    for k in range(2):
+        with h5py.File(out_dir / f"c{k}.depth.h5") as f:
+            assert f["depth_m"].shape == (4, 4) and f["valid"][()].mean() > 0.9
+            assert np.median(f["depth_m"][()]) == pytest.approx(0.3, abs=0.01)
+    assert not (out_dir / "bad.depth.h5").exists()
+    # two captures of one name would overwrite each other: refused before any work
+    assert main(["stream", str(captures[0]), str(captures[0]), "--out-dir", str(tmp_path / "again")]) == 2
+    assert "would both write" in capsys.readouterr().err

@@ -9,14 +9,15 @@ from pathlib import Path
 
 from ..fileio import OutputSet
 from ..runtime import enable_compilation_cache, use_cpu_streams
-from . import calibrate, demo, design, info, reconstruct, scenes, simulate, sweep, uncertainty
+from . import calibrate, demo, design, info, reconstruct, scenes, simulate, stream, sweep, uncertainty
 from .common import check_output_paths
 from .reconstruct import run_reconstruct, summary
 
-COMMANDS = (demo, simulate, reconstruct, calibrate, sweep, design, uncertainty, info, scenes)
+COMMANDS = (demo, simulate, reconstruct, stream, calibrate, sweep, design, uncertainty, info, scenes)
 # commands whose files are committed as they go: the sweep's checkpoint after every chunk of
-# points, the demo's capture (which it then reads); every other command's outputs form one set
-WRITES_AS_IT_GOES = ("sweep", "demo")
+# points, the demo's capture (which it then reads), a stream's depth file per capture; every
+# other command's outputs form one set
+WRITES_AS_IT_GOES = ("sweep", "demo", "stream")
 
 
 def build_parser() -> argparse.ArgumentParser:

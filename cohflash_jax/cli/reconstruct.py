@@ -20,6 +20,23 @@ def add_parser(sub) -> None:
     )
     r.add_argument("capture", help="capture file (format v1, .h5)")
     r.add_argument("--out", required=True, help="depth result file (.h5)")
+    add_reconstruction_options(r)
+    r.add_argument("--png", help="colour-mapped depth preview with a colour bar in mm")
+    r.add_argument("--tiff", help="float32 depth TIFF in metres (NaN = invalid)")
+    r.add_argument("--ply", help="point cloud of valid pixels")
+    r.add_argument(
+        "--png-range-mm",
+        type=range_mm,
+        default=None,
+        help="LO,HI colour limits of the PNG in mm relative to the median depth (default: 1st–99th percentile)",
+    )
+    add_quiet(r)
+    r.set_defaults(func=run)
+
+
+def add_reconstruction_options(r) -> None:
+    """The options of a reconstruction (method, calibration, registration, thresholds, …),
+    shared by `reconstruct` and `stream`."""
     r.add_argument(
         "--method",
         choices=tuple(METHODS),
@@ -48,15 +65,6 @@ def add_parser(sub) -> None:
         "removes it, else aligns statically; static; tracked (follow each pixel's drift)",
     )
     r.add_argument("--tracking", action="store_true", help="the same as --carrier tracked")
-    r.add_argument("--png", help="colour-mapped depth preview with a colour bar in mm")
-    r.add_argument("--tiff", help="float32 depth TIFF in metres (NaN = invalid)")
-    r.add_argument("--ply", help="point cloud of valid pixels")
-    r.add_argument(
-        "--png-range-mm",
-        type=range_mm,
-        default=None,
-        help="LO,HI colour limits of the PNG in mm relative to the median depth (default: 1st–99th percentile)",
-    )
     r.add_argument(
         "--tile-rows",
         type=number_in(1, 10**6, "tile rows", False, True),
@@ -79,8 +87,6 @@ def add_parser(sub) -> None:
     r.add_argument(
         "--dtype", choices=("float32", "float64"), default="float32", help="I/Q and FFT precision (ML always float64)"
     )
-    add_quiet(r)
-    r.set_defaults(func=run)
 
 
 def run_reconstruct(

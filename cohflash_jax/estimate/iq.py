@@ -11,6 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ..xp import namespace
+
 
 def iq_from_frames(
     frames: Array,
@@ -23,15 +25,16 @@ def iq_from_frames(
 
     `dark` per-pixel offsets, `gain` per-pixel gains relative to those folded into W; both
     are folded into per-pixel weights and bias, so the frames are read once."""
-    x = frames if jnp.issubdtype(frames.dtype, jnp.floating) else frames.astype(jnp.float32)
-    w = iq_weights.astype(x.dtype)
-    b = iq_bias.astype(x.dtype)[:, None]
+    xp = namespace(frames, iq_weights, iq_bias, dark, gain)
+    x = frames if xp.issubdtype(frames.dtype, xp.floating) else frames.astype(xp.float32)
+    w = xp.asarray(iq_weights).astype(x.dtype)
+    b = xp.asarray(iq_bias).astype(x.dtype)[:, None]
     if gain is not None:
         w = w[:, :, None] / gain.astype(x.dtype)[None]  # (2, 4, P)
     if dark is not None:
         d = dark.astype(x.dtype)
         # dark folded into the bias, not subtracted per frame
-        b = b - (jnp.einsum("ikp,kp->ip", w, d) if w.ndim == 3 else w @ d)
+        b = b - (xp.einsum("ikp,kp->ip", w, d) if w.ndim == 3 else w @ d)
     i = w[0, 0] * x[0] + w[0, 1] * x[1] + w[0, 2] * x[2] + w[0, 3] * x[3] + b[0]
     q = w[1, 0] * x[0] + w[1, 1] * x[1] + w[1, 2] * x[2] + w[1, 3] * x[3] + b[1]
     return i, q

@@ -11,7 +11,6 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 # A polish stops once its step is below this fraction of the pixel's predicted σ (finer steps
@@ -40,6 +39,8 @@ def polish_depth(cost, start_mm, *, max_steps: int, tolerance_mm=STEP_TOLERANCE_
     Newton finds maxima as readily as minima: check the cost at the result with `descended`
     (the caller evaluates it there anyway)."""
     slope = lambda x, _: jax.jvp(cost, (x,), (jnp.ones_like(x),))[1]
+    import optimistix as optx  # here: a run whose programs load from the executable cache never needs it
+
     solver = optx.Newton(rtol=1e-5, atol=tolerance_mm)
     sol = optx.root_find(slope, solver, start_mm, max_steps=max_steps, throw=False)
     return Polish(

@@ -9,6 +9,7 @@ import json
 import math
 import time
 
+import jax
 import numpy as np
 
 from ..calibration_file import Calibration, CaptureSetup, PixelMaps
@@ -105,6 +106,33 @@ def depth_meta(plan: TilePlan, options: ReconstructOptions, alignment: CarrierAl
     }
 
 
+# the last set-ups (plan, dispatcher) of this process: a stream of captures of one instrument
+# builds its plan and places it on the devices once, not once per capture
+_SETUPS: dict = {}
+MAX_SETUPS = 4
+
+
+def plan_and_dispatcher(instrument, options, saturation, alignment, sub_px):
+    """The plan for these settings and a dispatcher of sub-tiles of `sub_px` pixels, reused
+    from an earlier capture of this process where every setting is equal (and hashable)."""
+    key = None
+    if alignment.phase_rad is None:  # a known drift is the capture's own
+        leaves, treedef = jax.tree.flatten(instrument)
+        if not any(isinstance(x, jax.Array) for x in leaves):  # traced or placed: built afresh
+            values = tuple((x.shape, x.dtype.str, x.tobytes()) if isinstance(x, np.ndarray) else x for x in leaves)
+            settings = repr(dataclasses.replace(options, progress=False))
+            key = (treedef, values, settings, saturation, alignment.tracking, sub_px)
+            if key in _SETUPS:
+                return _SETUPS[key]
+    plan = build_plan(instrument, options, saturation, tracking=alignment.tracking)
+    setup = (plan, TileDispatcher(plan, sub_px, alignment.phase_rad))
+    if key is not None:
+        if len(_SETUPS) >= MAX_SETUPS:
+            _SETUPS.pop(next(iter(_SETUPS)))
+        _SETUPS[key] = setup
+    return setup
+
+
 def reconstruct_capture(
     capture: Capture,
     options: ReconstructOptions,
@@ -165,8 +193,7 @@ def reconstruct_capture(
     # the first tile is read before the plan is made: "auto" carrier alignment looks at it
     first = tile_inputs(0)
     alignment = align_carrier(options, instrument, first[1], first[3], first[4])
-    plan = build_plan(instrument, options, saturation, tracking=alignment.tracking)
-    dispatcher = TileDispatcher(plan, sub_tile_pixels(rows * w, n), alignment.phase_rad)
+    plan, dispatcher = plan_and_dispatcher(instrument, options, saturation, alignment, sub_tile_pixels(rows * w, n))
     with progress_bar(total=h * w, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True) as bar:
         pending = None
         for r0 in range(0, h, rows):

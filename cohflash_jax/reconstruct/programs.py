@@ -11,7 +11,6 @@ docs/performance.md.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
 from ..estimate.iq import carrier_axis, derotate, iq_from_frames, rotate_onto_axis, track_carrier_drift
@@ -37,7 +36,7 @@ def process_tile(plan: TilePlan, frames, dark, data_status=None, gain=None, carr
     return invert_sequence(plan, rotate_program(i, q, c, s), noise_var, total_var, flags, data_status)
 
 
-rotate_program = jax.jit(rotate_onto_axis)
+rotate_program = async_filter_jit(rotate_onto_axis)
 
 
 def _axis(i, q):
@@ -47,7 +46,7 @@ def _axis(i, q):
     return axis.cos, axis.sin, axis.noise_var.astype(jnp.float64), axis.total_var.astype(jnp.float64)
 
 
-carrier_axis_program = jax.jit(_axis)
+carrier_axis_program = async_filter_jit(_axis)
 
 
 def _checks_and_iq(plan: TilePlan, frames, dark, gain=None, carrier_phase_rad=None):

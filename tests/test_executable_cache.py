@@ -1,0 +1,60 @@
+"""The executable cache (issue #21): a program compiled in one process is loaded whole in the
+next, without tracing, and gives the same results; a damaged entry is compiled afresh."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+
+RUN = textwrap.dedent(
+    """
+    import json, sys
+    import numpy as np
+    from cohflash_jax.runtime import EXECUTABLES, enable_compilation_cache
+    enable_compilation_cache(sys.argv[1])
+    import cohflash_jax as cf
+    from cohflash_jax.reconstruct import ReconstructOptions, reconstruct_array
+    inst = cf.Instrument.paper(128)
+    import jax
+    frames = cf.simulate(cf.planar(12.0, 0.9, effects=("shot_noise",)), inst, 4, 4, jax.random.key(3))
+    out = reconstruct_array(np.asarray(frames), inst, ReconstructOptions(method="dft", progress=False))
+    np.save(sys.argv[2], np.stack([out["depth_m"], out["sigma_m"], out["fit_status"]]))
+    print(json.dumps({"loaded": EXECUTABLES.loaded, "compiled": EXECUTABLES.compiled}))
+    """
+)
+
+
+def run(cache, out):
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    done = subprocess.run(
+        [sys.executable, "-c", RUN, str(cache), str(out)], capture_output=True, text=True, env=env, timeout=300
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout.strip().splitlines()[-1]), np.load(out)
+
+
+def test_programs_load_in_a_fresh_process_and_damaged_entries_are_replaced(tmp_path):
+    cache = tmp_path / "cache"
+    first, a = run(cache, tmp_path / "a.npy")
+    assert first["compiled"] >= 2 and first["loaded"] == 0
+    entries = sorted((cache / "executables").glob("*.exe"))
+    assert len(entries) == first["compiled"]
+    second, b = run(cache, tmp_path / "b.npy")
+    assert second == {"loaded": first["compiled"], "compiled": 0}
+    np.testing.assert_array_equal(a, b)
+    for e in entries:  # damaged on disk: compiled afresh, same results
+        e.write_bytes(b"not an executable")
+    third, c = run(cache, tmp_path / "c.npy")
+    assert third == {"loaded": 0, "compiled": first["compiled"]}
+    np.testing.assert_array_equal(a, c)
+    assert all(e.read_bytes() != b"not an executable" for e in entries)
+
+
+def test_a_static_half_without_stable_text_stays_in_memory():
+    from cohflash_jax.runtime import EXECUTABLES
+
+    key = EXECUTABLES.key(test_a_static_half_without_stable_text_stays_in_memory, (lambda: 0,), None, ())
+    assert key is None
