@@ -37,16 +37,20 @@ def async_filter_jit(fun):
 
     programs = {}
 
-    @functools.cache
-    def traced(static, treedef):
-        """The program as a plain `jax.jit`, for calls under another transformation (a
-        compiled executable takes concrete arrays only)."""
+    def flat_fun(static, treedef):
+        """`fun` of the dynamic leaves alone, the static half closed over."""
 
         def flat(*xs):
             a, k = eqx.combine(jax.tree.unflatten(treedef, xs), static)
             return fun(*a, **dict(k))
 
-        return jax.jit(flat)
+        return flat
+
+    @functools.cache
+    def traced(static, treedef):
+        """The program as a plain `jax.jit`, for calls under another transformation (a
+        compiled executable takes concrete arrays only)."""
+        return jax.jit(flat_fun(static, treedef))
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
@@ -59,11 +63,7 @@ def async_filter_jit(fun):
         key = (static, treedef, signature)
         program = programs.get(key)
         if program is None:
-
-            def flat(*xs):
-                a, k = eqx.combine(jax.tree.unflatten(treedef, xs), static)
-                return fun(*a, **dict(k))
-
+            flat = flat_fun(static, treedef)
             program = programs[key] = EXECUTABLES.program(fun, flat, (static, treedef, signature), leaves)
         return program(*leaves)
 

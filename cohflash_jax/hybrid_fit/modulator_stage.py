@@ -117,7 +117,8 @@ def fit_modulator(
     flat, unravel = jax.flatten_util.ravel_pytree(sol.value)
     dof = r.size - flat.size - 2 * p
     # clustered by frame: a residual error of the common carrier drift moves every pixel of a
-    # frame alike (measured: roll-off pulls of std 1.3 under turbulence with the model's σ)
+    # frame alike. A floor only: under turbulence the error is also correlated across frames,
+    # which this misses (roll-off pull std 1.26–1.35 with it); the block jackknife below counts it
     cov, chi2, singular, _ = covariance(_flat_modulator_residuals, flat, (unravel, args), dof, clusters=r.shape[0])
     sig = unravel(jnp.asarray(np.sqrt(np.maximum(np.diag(cov), 0))))
     val = sol.value
