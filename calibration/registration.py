@@ -1,6 +1,9 @@
-"""Four-CCD registration with Zhang's method (OpenCV): chessboard corners → intrinsics and
-distortion per CCD → pose of CCDs 2–4 relative to CCD 1 → pixel maps onto CCD 1's grid at the
-working distance → the paper's XOR misalignment check → registration JSON and report figure.
+"""Four-CCD registration: chessboard corners (labelled by the board, `corners`) → a first guess
+per camera (Zhang's method, OpenCV) → each CCD's orientation (normal or mirrored) and pose
+against CCD 1 → the joint solve of all four cameras with per-corner outlier rejection and
+covariance (`joint`) → pixel maps onto CCD 1's grid at the working distance, with their
+uncertainty → quality gates → the paper's XOR check → registration JSON (this module owns the
+format end to end) and report (`report`).
 """
 
 from __future__ import annotations
@@ -15,154 +18,160 @@ import cv2
 import numpy as np
 from tqdm.auto import tqdm
 
-from cohflash_jax.fileio import read_gray_image, read_json
+from cohflash_jax.fileio import read_json
+from cohflash_jax.registered import EDGE_TOLERANCE_PX
 
+from . import joint
 from .board import Board
+from .corners import (
+    RegistrationError,
+    board_continues,
+    find_corners,
+    label_by_board,
+    list_views,
+    read_image,
+    to_uint8,
+)
 
-IMAGE_SUFFIXES = {".png", ".tif", ".tiff", ".bmp", ".pgm", ".jpg", ".jpeg"}
 MIN_VIEWS = 3
 FORMAT_NAME = "cohflash-registration"
+FORMAT_VERSION = 2
+# Quality gates: a registration beyond any of these is refused, by `register` and by the loader
+MAX_CORNER_RMS_PX = 2.0  # chessboard corners are good to 0.05–0.5 px; 2 px means a wrong model or board
+MAX_REJECTED_FRACTION = 0.3  # of a CCD's detected corners, as outliers or in dropped views
+MIN_COVERED_FRACTION = 0.1  # of CCD 1's pixels that a registered CCD must see
+# Two orientations (normal, mirrored) of a CCD are told apart by how well its per-view poses
+# against CCD 1 agree; the views' relative rotations agree to ~0.1° on a real rig
+CONSENSUS_DEG = 2.0
+
+__all__ = [
+    "CameraCalibration",
+    "Registration",
+    "RegistrationError",
+    "ViewImages",
+    "load_registration",
+    "pixel_maps",
+    "register",
+    "write_registration",
+    "xor_image",
+    "xor_ratio",
+]
 
 
-class RegistrationError(ValueError):
-    """Registration input is unusable; the message names the file or folder."""
-
-
-# -- images -----------------------------------------------------------------------------------
-def list_views(folders) -> list[list[Path]]:
-    """Sorted image files of each CCD folder; all folders must hold the same number."""
-    views = []
-    for d in map(Path, folders):
-        if not d.is_dir():
-            what = "is a file, not a folder of images" if Path(d).exists() else "not found"
-            raise RegistrationError(f"image folder {d}: {what}")
-        files = sorted(p for p in d.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-        if not files:
-            raise RegistrationError(f"no images ({', '.join(sorted(IMAGE_SUFFIXES))}) in {d}")
-        views.append(files)
-    counts = [len(v) for v in views]
-    if len(set(counts)) > 1:
-        raise RegistrationError(
-            "unequal numbers of views: " + ", ".join(f"{d} has {c}" for d, c in zip(folders, counts))
-        )
-    same_as_earlier(folders, views)
-    return views
-
-
-def same_as_earlier(folders, views) -> None:
-    """RegistrationError where two CCDs' folders are one folder, or hold byte-identical images
-    (four copies of CCD 1's folder registered as 0.000° apart, with no warning)."""
-    import hashlib
-
-    digest = lambda files: tuple(hashlib.sha256(f.read_bytes()).hexdigest() for f in files)
-    seen = {}
-    for k, (folder, files) in enumerate(zip(folders, views)):
-        key = (Path(folder).resolve(),)
-        if key in seen:
-            raise RegistrationError(f"CCD {k + 1}'s folder {folder} is CCD {seen[key] + 1}'s: give each CCD its own")
-        seen[key] = k
-        content = digest(files)
-        if content in seen:
-            raise RegistrationError(
-                f"CCD {k + 1}'s images in {folder} are byte-identical to CCD {seen[content] + 1}'s: "
-                "the same views copied twice? Each CCD must photograph the board itself"
-            )
-        seen[content] = k
-
-
-def read_image(path: Path) -> np.ndarray:
-    img = read_gray_image(path)
-    if img is None:
-        raise RegistrationError(f"cannot read image {path}")
-    if img.dtype not in (np.uint8, np.uint16):
-        raise RegistrationError(f"{path}: unsupported pixel type {img.dtype} (8- or 16-bit expected)")
-    return img
-
-
-def to_uint8(img: np.ndarray) -> np.ndarray:
-    """Contrast-stretch (0.5–99.5 percentile) to 8 bits: low-contrast 16-bit SWIR frames too."""
-    if img.dtype == np.uint8:
-        return img
-    lo, hi = np.percentile(img, [0.5, 99.5])
-    scaled = (img.astype(np.float64) - lo) / max(hi - lo, 1.0)
-    return np.clip(np.round(255 * scaled), 0, 255).astype(np.uint8)
-
-
-def detect_corners(img8: np.ndarray, board: Board, refine_on: np.ndarray | None = None) -> np.ndarray | None:
-    """Inner corners (N, 2) float32 with sub-pixel accuracy, or None if the board is not found.
-
-    The classic detector refined by `cornerSubPix` comes first: on our synthetic boards it is
-    unbiased (focal length within 0.03 %), while the sector-based `findChessboardCornersSB`
-    biased the focal length by 0.3–0.8 %. SB, more robust on hard images, is the fallback.
-    `refine_on` (float32, e.g. the 16-bit original) is used for the sub-pixel step so that the
-    8-bit stretch used for detection does not quantise the corners."""
-    ok, corners = cv2.findChessboardCorners(
-        img8, board.pattern_size, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-    )
-    if ok:
-        src = img8 if refine_on is None else refine_on
-        corners = cv2.cornerSubPix(
-            src,
-            np.asarray(corners, np.float32).reshape(-1, 1, 2),
-            (5, 5),
-            (-1, -1),
-            (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4),
-        )
-    else:
-        flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
-        ok, corners = cv2.findChessboardCornersSB(img8, board.pattern_size, flags=flags)
-        if not ok:
-            return None
-    corners = np.asarray(corners, np.float32).reshape(-1, 2)
-    return corners if corners.shape[0] == board.cols * board.rows else None
-
-
-# -- calibration ------------------------------------------------------------------------------
+# -- first guess per camera -------------------------------------------------------------------
 @dataclasses.dataclass
 class CameraCalibration:
+    """One CCD's intrinsics and distortion (OpenCV's model), in its own pixel frame, which is
+    flipped left–right where `mirrored` (a CCD behind an odd number of mirrors)."""
+
     camera_matrix: np.ndarray
     dist_coeffs: np.ndarray
     rms_px: float
-    per_view_rms_px: dict  # view name → RMS
-    std_intrinsics: np.ndarray  # fx, fy, cx, cy, k1, k2, p1, p2, k3, …
+    per_view_rms_px: dict  # view name → RMS of its kept corners
+    std_intrinsics: np.ndarray  # fx, fy, cx, cy, k1, k2, p1, p2, k3
     views_used: list
     views_left_out: dict  # view name → reason
+    mirrored: bool = False
+    corners_rejected: dict = dataclasses.field(default_factory=dict)  # view → corners left out
 
 
-def calibrate_camera(obj: np.ndarray, detections: dict, image_size) -> CameraCalibration:
-    """Zhang's method on the detected views; views whose RMS is an outlier (> max(3× median,
-    median + 0.5 px)) are left out and the calibration is repeated once."""
-    names = list(detections)
-    left_out = {}
+@dataclasses.dataclass
+class FirstGuess:
+    """Zhang's method on one CCD: intrinsics and a board pose per view it kept."""
+
+    camera_matrix: np.ndarray
+    dist_coeffs: np.ndarray
+    poses: dict  # view → (R (3, 3), t (3,)) of the board in this camera's frame
+
+
+def calibrate_camera(obj: np.ndarray, corners: dict, image_size) -> FirstGuess:
+    """Zhang's method on one camera's views (a first guess for the joint solve); views whose RMS
+    is an outlier (> max(3× median, median + 0.5 px)) are left out of the guess."""
+    names = list(corners)
     for _ in range(2):
         if len(names) < MIN_VIEWS:
             raise RegistrationError(f"too few valid views ({len(names)}; at least {MIN_VIEWS} needed)")
-        rms, k, d, rvecs, tvecs, std_in, _, per_view = cv2.calibrateCameraExtended(
-            [obj] * len(names), [detections[n].reshape(-1, 1, 2) for n in names], image_size, None, None
+        _, k, d, rvecs, tvecs, _, _, per_view = cv2.calibrateCameraExtended(
+            [obj.astype(np.float32)] * len(names),
+            [corners[n].reshape(-1, 1, 2).astype(np.float32) for n in names],
+            image_size,
+            None,
+            None,
         )
         per_view = np.asarray(per_view).ravel()
         med = float(np.median(per_view))
         bad = [n for n, e in zip(names, per_view) if e > max(3 * med, med + 0.5)]
         if not bad:
             break
-        for n in bad:
-            left_out[n] = f"outlier: reprojection RMS {per_view[names.index(n)]:.2f} px (median {med:.2f})"
         names = [n for n in names if n not in bad]
-    return CameraCalibration(
-        k, d.ravel(), float(rms), dict(zip(names, map(float, per_view))), np.asarray(std_in).ravel(), names, left_out
-    )
+    poses = {n: (cv2.Rodrigues(r)[0], np.asarray(t, np.float64).ravel()) for n, r, t in zip(names, rvecs, tvecs)}
+    return FirstGuess(k, np.asarray(d, np.float64).ravel()[:5], poses)
 
 
-def _oriented(reference: np.ndarray, corners: np.ndarray) -> np.ndarray:
-    """Corner order of `corners` made to agree with `reference` (same board, other CCD)."""
-    a, b = reference[-1] - reference[0], corners[-1] - corners[0]
-    return corners[::-1].copy() if a @ b < 0 else corners
+def angle_deg(r: np.ndarray) -> float:
+    return float(np.rad2deg(np.linalg.norm(cv2.Rodrigues(np.asarray(r, np.float64))[0])))
 
 
-def pixel_maps(cam1: CameraCalibration, camk: CameraCalibration, R, T, image_size, distance_mm: float):
+@dataclasses.dataclass
+class Orientation:
+    """How CCD k's views are labelled against CCD 1's: whether it is mirrored, the labelling
+    chosen in each view, the pose guess (X_k = R·X_1 + T) and how well the views agree."""
+
+    mirrored: bool
+    corners: dict  # view → corners (N, 2) in the CCD's (possibly flipped) frame
+    guess: FirstGuess
+    R: np.ndarray
+    T: np.ndarray
+    spread_deg: float  # median disagreement of the views' relative rotations with R
+
+
+def orient(obj, ref: FirstGuess, detections: dict, image_size, mirrored: bool) -> Orientation:
+    """CCD k's labelling and pose guess under one hypothesis (normal or mirrored): a first guess
+    of its camera, each view's relative pose to CCD 1, and where the board left a 180° turn open,
+    per view the labelling whose relative pose agrees with the consensus of the views."""
+    primary = {n: d.corners for n, d in detections.items()}
+    guess = calibrate_camera(obj, primary, image_size)
+    candidates = {}  # view → [(corners, R_rel, T_rel)]
+    for n, det in detections.items():
+        if n not in ref.poses:
+            continue
+        r1, t1 = ref.poses[n]
+        for c in (det.corners, *det.alternatives):
+            ok, rv, tv = cv2.solvePnP(obj, c.astype(np.float64), guess.camera_matrix, guess.dist_coeffs)
+            if ok:
+                rk = cv2.Rodrigues(rv)[0]
+                rel = rk @ r1.T
+                candidates.setdefault(n, []).append((c, rel, tv.ravel() - rel @ t1))
+    if len(candidates) < MIN_VIEWS:
+        raise RegistrationError(f"too few views shared with CCD 1 ({len(candidates)}; at least {MIN_VIEWS} needed)")
+    everything = [rel for cands in candidates.values() for _, rel, _ in cands]
+
+    def support(r):
+        return sum(min(angle_deg(rel @ r.T) for _, rel, _ in cands) < CONSENSUS_DEG for cands in candidates.values())
+
+    consensus = max(everything, key=support)
+    chosen, rels, ts, dev = dict(primary), [], [], []
+    for n, cands in candidates.items():
+        c, rel, t = min(cands, key=lambda x: angle_deg(x[1] @ consensus.T))
+        chosen[n] = c
+        dev.append(angle_deg(rel @ consensus.T))
+        if dev[-1] < CONSENSUS_DEG:
+            rels.append(rel)
+            ts.append(t)
+    if not rels:
+        rels, ts = [consensus], [np.median([t for cands in candidates.values() for _, _, t in cands], axis=0)]
+    rv = np.median([cv2.Rodrigues(r)[0].ravel() for r in rels], axis=0)
+    return Orientation(mirrored, chosen, guess, cv2.Rodrigues(rv)[0], np.median(ts, axis=0), float(np.median(dev)))
+
+
+# -- pixel maps and the XOR check -------------------------------------------------------------
+def pixel_maps(
+    cam1: CameraCalibration, camk: CameraCalibration, R, T, image_size, distance_mm: float
+) -> tuple[np.ndarray, np.ndarray]:
     """For every CCD 1 pixel, the CCD k pixel that sees the same point of a fronto-parallel plane
     at `distance_mm`: back-project (undistorted), move to CCD k's frame (X_k = R·X_1 + T),
-    project with CCD k's intrinsics and distortion. float32 maps for `cv2.remap`."""
+    project with CCD k's intrinsics and distortion, and un-flip a mirrored CCD's column.
+    float32 maps for `cv2.remap`."""
     w, h = image_size
     v, u = np.meshgrid(np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64), indexing="ij")
     pts = np.stack([u.ravel(), v.ravel()], axis=1)[:, None, :]
@@ -171,36 +180,58 @@ def pixel_maps(cam1: CameraCalibration, camk: CameraCalibration, R, T, image_siz
     x1 = np.concatenate([norm, np.ones((norm.shape[0], 1))], axis=1) * distance_mm
     xk = x1 @ np.asarray(R).T + np.asarray(T).ravel()
     proj, _ = cv2.projectPoints(xk, np.zeros(3), np.zeros(3), camk.camera_matrix, camk.dist_coeffs)
-    proj = proj.reshape(h, w, 2).astype(np.float32)
+    proj = proj.reshape(h, w, 2)
+    if camk.mirrored:
+        proj[..., 0] = w - 1 - proj[..., 0]
+    proj = proj.astype(np.float32)
     return proj[..., 0], proj[..., 1]
 
 
+def covered(map_x: np.ndarray, map_y: np.ndarray, shape) -> np.ndarray:
+    """CCD 1 pixels whose map lands inside CCD k's image (to `EDGE_TOLERANCE_PX`)."""
+    h, w = shape
+    tol = EDGE_TOLERANCE_PX
+    return (map_x >= -tol) & (map_x <= w - 1 + tol) & (map_y >= -tol) & (map_y <= h - 1 + tol)
+
+
+def otsu_on(img8: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """Otsu binarisation with the threshold taken from the pixels `where` only."""
+    if not where.any():
+        return np.zeros(img8.shape, bool)
+    thr, _ = cv2.threshold(img8[where].reshape(-1, 1), 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    return img8 > thr
+
+
 def xor_image(img1_8: np.ndarray, imgk_8: np.ndarray, map_x=None, map_y=None) -> tuple[np.ndarray, np.ndarray]:
-    """The paper's check: Otsu-binarize both images (CCD k resampled onto CCD 1's grid when
-    maps are given) and XOR them → (differing pixels, pixels both images cover)."""
+    """The paper's check: Otsu-binarise both images (CCD k resampled onto CCD 1's grid when maps
+    are given) and XOR them → (differing pixels, pixels both images cover). Both thresholds come
+    from the covered pixels only: the zeros `remap` fills in elsewhere used to pull the
+    threshold down and read 60.8 % for 34.7 % on low-contrast frames."""
     if map_x is not None:
-        valid = (map_x >= 0) & (map_x <= imgk_8.shape[1] - 1) & (map_y >= 0) & (map_y <= imgk_8.shape[0] - 1)
+        valid = covered(map_x, map_y, imgk_8.shape)
         imgk_8 = cv2.remap(imgk_8, map_x, map_y, cv2.INTER_LINEAR)
     else:
         valid = np.ones(img1_8.shape, bool)
-    _, b1 = cv2.threshold(img1_8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    _, bk = cv2.threshold(imgk_8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    return (b1 != bk) & valid, valid
+    return (otsu_on(img1_8, valid) != otsu_on(imgk_8, valid)) & valid, valid
 
 
 def xor_ratio(img1_8: np.ndarray, imgk_8: np.ndarray, map_x=None, map_y=None) -> float:
-    """Fraction of misaligned pixels (XOR of the binarized images) among those both cover."""
+    """Fraction of misaligned pixels (XOR of the binarised images) among those both cover."""
     diff, valid = xor_image(img1_8, imgk_8, map_x, map_y)
     return float(diff.sum() / max(valid.sum(), 1))
 
 
+# -- the registration -------------------------------------------------------------------------
 @dataclasses.dataclass
 class ViewImages:
-    """What the report figure shows of the views: each CCD's 8-bit images and detected corners,
-    keyed by view name. Not stored in the registration file."""
+    """What the report shows of the views: each CCD's 8-bit images (in the CCD's own frame, not
+    flipped) and labelled corners (in its solve frame), keyed by view name, and the joint solve.
+    Not stored in the registration file."""
 
     images8: list[dict]
-    detections: list[dict]
+    corners: list[dict]
+    solution: joint.JointSolution | None = None
+    view_names: list = dataclasses.field(default_factory=list)
 
 
 @dataclasses.dataclass
@@ -217,6 +248,11 @@ class Registration:
     failed: dict  # file → reason
     seconds_per_view: float
     views: ViewImages | None = dataclasses.field(default=None, repr=False, compare=False)  # for the report
+    pose_covariance: list = dataclasses.field(default_factory=list)  # (6, 6): rvec (rad), T (mm)
+    map_sigma_px: list = dataclasses.field(default_factory=list)  # per CCD 2–4: {"u", "v", "sigma"}
+    corner_sigma_px: float = float("nan")
+    covered_fraction: list = dataclasses.field(default_factory=list)
+    missing_views: dict = dataclasses.field(default_factory=dict)  # view → CCDs whose folder lacks it
 
     def maps(self, ccd_index: int):
         """(map_x, map_y) of CCD `ccd_index` (2–4) onto CCD 1's grid."""
@@ -225,44 +261,111 @@ class Registration:
             self.cameras[0], self.cameras[k], self.R[k - 1], self.T[k - 1], self.image_size, self.distance_mm
         )
 
+    def pose_sigma(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """1σ of CCD k+2's Rodrigues vector (deg) and translation (mm), NaN where not stated."""
+        if k >= len(self.pose_covariance):
+            return np.full(3, np.nan), np.full(3, np.nan)
+        sd = np.sqrt(np.clip(np.diag(np.asarray(self.pose_covariance[k])), 0, None))
+        return np.rad2deg(sd[:3]), sd[3:]
+
     def summary(self) -> dict:
         """The poses this registration applies (CCDs 2–4 against CCD 1), for a result's provenance."""
-        return {
-            "working_distance_mm": self.distance_mm,
-            "relative_poses": [
+        poses = []
+        for k, (r, t, s) in enumerate(zip(self.R, self.T, self.stereo_rms_px)):
+            rot_sd, t_sd = self.pose_sigma(k)
+            poses.append(
                 {
                     "ccd": k + 2,
-                    "rotation_deg": float(np.rad2deg(np.linalg.norm(cv2.Rodrigues(np.asarray(r))[0]))),
+                    "mirrored": bool(self.cameras[k + 1].mirrored),
+                    "rotation_deg": angle_deg(r),
                     "T_mm": np.asarray(t).ravel().tolist(),
                     "stereo_rms_px": s,
+                    "rotation_sigma_deg": rot_sd.tolist(),
+                    "T_sigma_mm": t_sd.tolist(),
                 }
-                for k, (r, t, s) in enumerate(zip(self.R, self.T, self.stereo_rms_px))
-            ],
-        }
+            )
+        return {"working_distance_mm": self.distance_mm, "relative_poses": poses}
+
+    def quality_problems(self) -> list[str]:
+        """What makes this registration unusable, each with its remedy; empty when it passes."""
+        problems = []
+        for k, c in enumerate(self.cameras, start=1):
+            kk = c.camera_matrix
+            w, h = self.image_size
+            # a field of view between 0.01° (a long telescope) and 170°
+            if not (0.04 * w < kk[0, 0] < 5000 * w and 0.04 * w < kk[1, 1] < 5000 * w):
+                problems.append(
+                    f"CCD {k}: focal length {kk[0, 0]:.0f} px is implausible for a {w}-px wide image "
+                    "(check --board: a wrong corner count can match another pattern in the views)"
+                )
+            if not (0 <= kk[0, 2] <= w - 1 and 0 <= kk[1, 2] <= h - 1):
+                problems.append(
+                    f"CCD {k}: principal point ({kk[0, 2]:.0f}, {kk[1, 2]:.0f}) px lies outside the "
+                    f"{w}×{h} image (check --board, or add views that fill the image's corners)"
+                )
+            if c.std_intrinsics.size and not np.all(np.isfinite(c.std_intrinsics)):
+                problems.append(
+                    f"CCD {k}: σ of the intrinsics is NaN (the views do not constrain the camera: "
+                    "add views with the board tilted in different directions)"
+                )
+            if c.rms_px > MAX_CORNER_RMS_PX:
+                problems.append(
+                    f"CCD {k}: corners fit to {c.rms_px:.2f} px RMS, far above a chessboard's 0.05–0.5 px "
+                    "(check --board and that the views are in focus)"
+                )
+        for k, (s, cov) in enumerate(zip(self.stereo_rms_px, self.pose_covariance or [None] * 3), start=2):
+            if not math.isfinite(s) or s > MAX_CORNER_RMS_PX:
+                problems.append(
+                    f"CCD {k} against CCD 1: stereo RMS {s:.2f} px (check the CCD's orientation, --board, "
+                    "and that views with one name show one board position in every folder)"
+                )
+            if cov is not None and not np.all(np.isfinite(cov)):
+                problems.append(f"CCD {k}: σ of its pose is NaN (too few views shared with CCD 1)")
+        for k, f in enumerate(self.covered_fraction, start=2):
+            if f < MIN_COVERED_FRACTION:
+                problems.append(
+                    f"CCD {k} sees only {f:.1%} of CCD 1's pixels at {self.distance_mm:.0f} mm "
+                    "(no overlap: check --distance-mm and the CCD's orientation)"
+                )
+        return problems
 
     def to_json(self) -> dict:
         cam = lambda c: {
             "camera_matrix": c.camera_matrix.tolist(),
             "dist_coeffs": c.dist_coeffs.tolist(),
+            "mirrored": bool(c.mirrored),
             "rms_px": c.rms_px,
             "per_view_rms_px": c.per_view_rms_px,
             "std_intrinsics": c.std_intrinsics.tolist(),
             "views_used": c.views_used,
             "views_left_out": c.views_left_out,
+            "corners_rejected": c.corners_rejected,
         }
+        poses = []
+        for k, (r, pose) in enumerate(zip(self.R, self.summary()["relative_poses"])):
+            entry = {"R": np.asarray(r).tolist()} | pose
+            if k < len(self.pose_covariance):
+                entry["covariance_rvec_rad_T_mm"] = np.asarray(self.pose_covariance[k]).tolist()
+            poses.append(entry)
         return {
             "format": FORMAT_NAME,
-            "format_version": 1,
+            "format_version": FORMAT_VERSION,
             "image_size": list(self.image_size),
             "board": dataclasses.asdict(self.board),
             "working_distance_mm": self.distance_mm,
+            "solve": "joint: intrinsics, distortion, CCD poses and board poses together, outlier corners rejected",
+            "corner_sigma_px": self.corner_sigma_px,
             "cameras": [cam(c) for c in self.cameras],
-            "relative_poses": [
-                {"R": np.asarray(r).tolist()} | pose for r, pose in zip(self.R, self.summary()["relative_poses"])
+            "relative_poses": poses,
+            "map_sigma_px": [
+                {"ccd": k + 2, "u": m["u"].tolist(), "v": m["v"].tolist(), "sigma": m["sigma"].tolist()}
+                for k, m in enumerate(self.map_sigma_px)
             ],
+            "covered_fraction": self.covered_fraction,
             "xor_misalignment_before": self.xor_before,
             "xor_misalignment_after": self.xor_after,
             "failed_views": self.failed,
+            "missing_views": self.missing_views,
             "seconds_per_view": self.seconds_per_view,
         }
 
@@ -270,6 +373,10 @@ class Registration:
     def from_json(cls, data: dict, source="registration") -> "Registration":
         if data.get("format") != FORMAT_NAME:
             raise RegistrationError(f"{source}: format is {data.get('format')!r}, expected {FORMAT_NAME!r}")
+        if data.get("format_version") not in (1, 2):
+            raise RegistrationError(
+                f"{source}: format_version {data.get('format_version')!r} is not one this cohflash reads (1 or 2)"
+            )
         try:
             cams = [
                 CameraCalibration(
@@ -277,9 +384,11 @@ class Registration:
                     np.array(c["dist_coeffs"], np.float64),
                     float(c["rms_px"]),
                     dict(c.get("per_view_rms_px", {})),
-                    np.array(c.get("std_intrinsics", [])),
+                    np.array(c.get("std_intrinsics", []), np.float64),
                     list(c.get("views_used", [])),
                     dict(c.get("views_left_out", {})),
+                    bool(c.get("mirrored", False)),
+                    dict(c.get("corners_rejected", {})),
                 )
                 for c in data["cameras"]
             ]
@@ -296,6 +405,17 @@ class Registration:
                 list(data.get("xor_misalignment_after", [])),
                 dict(data.get("failed_views", {})),
                 float(data.get("seconds_per_view", 0.0)),
+                pose_covariance=[
+                    np.array(p["covariance_rvec_rad_T_mm"], np.float64)
+                    for p in poses
+                    if "covariance_rvec_rad_T_mm" in p
+                ],
+                map_sigma_px=[
+                    {k: np.array(m[k], np.float64) for k in ("u", "v", "sigma")} for m in data.get("map_sigma_px", [])
+                ],
+                corner_sigma_px=float(data.get("corner_sigma_px", float("nan"))),
+                covered_fraction=[float(f) for f in data.get("covered_fraction", [])],
+                missing_views=dict(data.get("missing_views", {})),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise RegistrationError(f"{source}: malformed registration file ({exc})") from None
@@ -323,98 +443,17 @@ class Registration:
             raise RegistrationError(
                 f"{source}: image_size {reg.image_size} or working distance {reg.distance_mm} mm out of range"
             )
+        for r in reg.R:
+            if abs(np.linalg.det(r) - 1) > 1e-6 or not np.allclose(r @ r.T, np.eye(3), atol=1e-6):
+                raise RegistrationError(f"{source}: a relative pose's R is not a rotation matrix")
+        problems = reg.quality_problems()
+        if problems:
+            raise RegistrationError(f"{source}: registration fails its quality checks: " + "; ".join(problems))
         return reg
 
 
 def load_registration(path) -> Registration:
     return Registration.from_json(read_json(path, "registration", RegistrationError), path)
-
-
-def register(folders, board: Board, distance_mm: float | None = None, progress: bool = True) -> Registration:
-    """Calibrate four CCDs from chessboard views (folder k = CCD k, views paired by sorted name)."""
-    if len(folders) != 4:
-        raise RegistrationError(f"four image folders are needed (CCD 1–4), got {len(folders)}")
-    if distance_mm is not None and not (math.isfinite(distance_mm) and distance_mm > 0):
-        raise RegistrationError(f"the working distance must be a positive number of mm, got {distance_mm}")
-    views = list_views(folders)
-    t0 = time.perf_counter()
-    size, depth = None, None
-    detections = [dict() for _ in range(4)]
-    images8 = [dict() for _ in range(4)]
-    failed = {}
-    total = sum(len(v) for v in views)
-    with tqdm(total=total, unit="view", desc="detecting corners", disable=not progress) as bar:
-        for k, files in enumerate(views):
-            for path in files:
-                img = read_image(path)
-                if size is None:
-                    size, depth = (img.shape[1], img.shape[0]), img.dtype
-                if (img.shape[1], img.shape[0]) != size:
-                    raise RegistrationError(
-                        f"{path}: image size {img.shape[1]}×{img.shape[0]} differs from "
-                        f"{size[0]}×{size[1]} of the first image"
-                    )
-                if img.dtype != depth:
-                    raise RegistrationError(f"{path}: bit depth {img.dtype} differs from {depth} of the first image")
-                img8 = to_uint8(img)
-                corners = detect_corners(img8, board, None if img.dtype == np.uint8 else img.astype(np.float32))
-                name = path.stem
-                images8[k][name] = img8
-                if corners is None:
-                    failed[str(path)] = "chessboard not found"
-                else:
-                    detections[k][name] = corners
-                bar.update()
-    obj = board.object_points()
-    cams = []
-    for k in range(4):
-        try:
-            cams.append(calibrate_camera(obj, detections[k], size))
-        except RegistrationError as exc:
-            raise RegistrationError(
-                f"CCD {k + 1} ({folders[k]}): {exc}; failed: "
-                + ", ".join(f for f in failed if Path(f).parent == Path(folders[k]))
-            ) from None
-    if distance_mm is None:  # median board distance seen by CCD 1
-        dists = []
-        for n in cams[0].views_used:
-            ok, rvec, tvec = cv2.solvePnP(obj, detections[0][n], cams[0].camera_matrix, cams[0].dist_coeffs)
-            if ok:
-                dists.append(float(np.linalg.norm(tvec)))
-        distance_mm = float(np.median(dists))
-    Rs, Ts, stereo_rms, before, after = [], [], [], [], []
-    for k in range(1, 4):
-        common = [n for n in cams[0].views_used if n in cams[k].views_used]
-        if len(common) < MIN_VIEWS:
-            raise RegistrationError(
-                f"CCD 1 and CCD {k + 1} share {len(common)} valid views; at least {MIN_VIEWS} needed"
-            )
-        pts1 = [detections[0][n].reshape(-1, 1, 2) for n in common]
-        ptsk = [_oriented(detections[0][n], detections[k][n]).reshape(-1, 1, 2) for n in common]
-        rms, *_, R, T, _, _ = cv2.stereoCalibrate(
-            [obj] * len(common),
-            pts1,
-            ptsk,
-            cams[0].camera_matrix,
-            cams[0].dist_coeffs,
-            cams[k].camera_matrix,
-            cams[k].dist_coeffs,
-            size,
-            flags=cv2.CALIB_FIX_INTRINSIC,
-        )
-        Rs.append(R)
-        Ts.append(T.ravel())
-        stereo_rms.append(float(rms))
-    reg = Registration(size, board, cams, Rs, Ts, stereo_rms, distance_mm, [], [], failed, 0.0)
-    for k in range(1, 4):
-        mx, my = reg.maps(k + 1)
-        common = [n for n in cams[0].views_used if n in cams[k].views_used]
-        before.append(float(np.mean([xor_ratio(images8[0][n], images8[k][n]) for n in common])))
-        after.append(float(np.mean([xor_ratio(images8[0][n], images8[k][n], mx, my) for n in common])))
-    reg.xor_before, reg.xor_after = before, after
-    reg.seconds_per_view = (time.perf_counter() - t0) / total
-    reg.views = ViewImages(images8, detections)
-    return reg
 
 
 def write_registration(path, reg: Registration) -> Path:
@@ -426,14 +465,231 @@ def write_registration(path, reg: Registration) -> Path:
     return path
 
 
-def from_pixel_transforms(image_size, focal_px: float, transforms, distance_mm: float = 30500.0) -> Registration:
+# -- register ---------------------------------------------------------------------------------
+def detect_all(view_files, board: Board, progress: bool):
+    """Read and detect every view: (image size, 8-bit images, raw corners, failed {file: reason})."""
+    size, depth = None, None
+    images8 = [dict() for _ in view_files.files]
+    raw = [dict() for _ in view_files.files]
+    failed = {}
+    continues = []
+    total = sum(len(f) for f in view_files.files)
+    with tqdm(total=total, unit="view", desc="detecting corners", disable=not progress) as bar:
+        for k, files in enumerate(view_files.files):
+            for name, path in files.items():
+                bar.update()
+                try:
+                    img = read_image(path)
+                except RegistrationError as exc:
+                    failed[str(path)] = str(exc).removeprefix(f"{path}: ")
+                    continue
+                if size is None:
+                    size, depth = (img.shape[1], img.shape[0]), img.dtype
+                if (img.shape[1], img.shape[0]) != size:
+                    raise RegistrationError(
+                        f"{path}: image size {img.shape[1]}×{img.shape[0]} differs from "
+                        f"{size[0]}×{size[1]} of the first image"
+                    )
+                if img.dtype != depth:
+                    raise RegistrationError(f"{path}: bit depth {img.dtype} differs from {depth} of the first image")
+                img8 = to_uint8(img)
+                images8[k][name] = img8
+                corners = find_corners(img8, board, None if img.dtype == np.uint8 else img.astype(np.float32))
+                if corners is None:
+                    failed[str(path)] = "chessboard not found"
+                    continue
+                side = board_continues(img8, corners, board)
+                if side is not None:
+                    continues.append(str(path))
+                    failed[str(path)] = (
+                        f"the chessboard pattern continues past the {board.cols}x{board.rows} grid found ({side})"
+                    )
+                    continue
+                raw[k][name] = corners
+    if continues and len(continues) >= max(3, sum(len(r) for r in raw) // 4):
+        raise RegistrationError(
+            f"--board {board.cols}x{board.rows} does not match the board: in {len(continues)} views the chessboard "
+            f"pattern continues past the grid found (e.g. {continues[0]}); count the board's inner corners"
+        )
+    if size is None:
+        raise RegistrationError(
+            "no readable image in the folders: " + "; ".join(f"{p}: {r}" for p, r in failed.items())
+        )
+    return size, images8, raw, failed
+
+
+def register(folders, board: Board, distance_mm: float | None = None, progress: bool = True) -> Registration:
+    """Register four CCDs from chessboard views (folder k = CCD k; a view is the same file name
+    in every folder). Refuses, naming the cause, where the result fails its quality checks."""
+    if len(folders) != 4:
+        raise RegistrationError(f"four image folders are needed (CCD 1–4), got {len(folders)}")
+    if distance_mm is not None and not (math.isfinite(distance_mm) and distance_mm > 0):
+        raise RegistrationError(f"the working distance must be a positive number of mm, got {distance_mm}")
+    view_files = list_views(folders)
+    t0 = time.perf_counter()
+    size, images8, raw, failed = detect_all(view_files, board, progress)
+    obj = board.object_points().astype(np.float64)
+    w = size[0]
+
+    def labelled(k: int, mirrored: bool) -> dict:
+        flip = lambda c: np.stack([w - 1 - c[:, 0], c[:, 1]], axis=1)
+        return {
+            n: label_by_board(images8[k][n][:, ::-1] if mirrored else images8[k][n], flip(c) if mirrored else c, board)
+            for n, c in raw[k].items()
+        }
+
+    def failed_in(k):
+        return ", ".join(f for f in failed if Path(f).parent == Path(folders[k])) or "none"
+
+    ccd1 = labelled(0, False)
+    try:
+        ref = calibrate_camera(obj, {n: d.corners for n, d in ccd1.items()}, size)
+    except RegistrationError as exc:
+        raise RegistrationError(f"CCD 1 ({folders[0]}): {exc}; failed: {failed_in(0)}") from None
+    orientations = []
+    for k in range(1, 4):
+        tried = []
+        for mirrored in (False, True):
+            try:
+                tried.append(orient(obj, ref, labelled(k, mirrored), size, mirrored))
+            except RegistrationError as exc:
+                error = exc
+        if not tried:
+            raise RegistrationError(f"CCD {k + 1} ({folders[k]}): {error}; failed: {failed_in(k)}") from None
+        orientations.append(min(tried, key=lambda o: o.spread_deg))
+    # the joint solve over every view any CCD saw
+    names = sorted(set().union(*(r.keys() for r in raw)))
+    labels = [{n: d.corners for n, d in ccd1.items()}] + [o.corners for o in orientations]
+    observed = np.full((4, len(names), obj.shape[0], 2), np.nan)
+    for k in range(4):
+        for v, n in enumerate(names):
+            if n in labels[k]:
+                observed[k, v] = labels[k][n]
+    seen = np.isfinite(observed[..., 0])
+    layout = joint.Layout(4, len(names))
+    x0 = np.zeros(layout.size)
+    guesses = [ref] + [o.guess for o in orientations]
+    for k, g in enumerate(guesses):
+        kk = g.camera_matrix
+        x0[layout.intrinsics(k)] = [kk[0, 0], kk[1, 1], kk[0, 2], kk[1, 2], *g.dist_coeffs]
+    for k, o in enumerate(orientations, start=1):
+        x0[layout.camera_pose(k)] = [*cv2.Rodrigues(o.R)[0].ravel(), *o.T]
+    for v, n in enumerate(names):
+        pose = ref.poses.get(n)
+        if pose is None:  # CCD 1 missed it: the board pose through another CCD's guess
+            for o in orientations:
+                if n in o.guess.poses:
+                    rk, tk = o.guess.poses[n]
+                    pose = (o.R.T @ rk, o.R.T @ (tk - o.T))
+                    break
+        if pose is None:  # no camera's first guess kept this view: the joint solve leaves it out
+            seen[:, v] = False
+            pose = (np.eye(3), np.array([0.0, 0.0, 1000.0]))
+        x0[layout.board_pose(v)] = [*cv2.Rodrigues(pose[0])[0].ravel(), *pose[1]]
+    solution = joint.solve(x0, layout, obj, observed, seen)
+    # the cameras, in the registration's terms
+    sd_all = [solution.intrinsics_sigma(k) for k in range(4)]
+    cams = []
+    for k in range(4):
+        mirrored = k > 0 and orientations[k - 1].mirrored
+        used = [n for v, n in enumerate(names) if solution.inliers[k, v].any()]
+        left_out = {names[v]: reason for (c, v), reason in solution.dropped_views.items() if c == k}
+        rejected = {
+            names[v]: int(seen[k, v].sum() - solution.inliers[k, v].sum())
+            for v in range(len(names))
+            if seen[k, v].any()
+            and (k, v) not in solution.dropped_views
+            and not solution.inliers[k, v].all()
+            and seen[k, v].sum() > solution.inliers[k, v].sum()
+        }
+        err = solution.residuals_px[k]
+        per_view = {
+            names[v]: float(np.sqrt(np.mean(np.sum(err[v][solution.inliers[k, v]] ** 2, axis=-1))))
+            for v in range(len(names))
+            if solution.inliers[k, v].any()
+        }
+        inl = solution.inliers[k]
+        rms = float(np.sqrt(np.mean(np.sum(err[inl] ** 2, axis=-1)))) if inl.any() else float("nan")
+        cams.append(
+            CameraCalibration(
+                solution.camera_matrix(k),
+                solution.dist_coeffs(k),
+                rms,
+                per_view,
+                sd_all[k],
+                used,
+                left_out,
+                mirrored,
+                rejected,
+            )
+        )
+        lost = 1 - inl.sum() / max(seen[k].sum(), 1)
+        if lost > MAX_REJECTED_FRACTION:
+            raise RegistrationError(
+                f"CCD {k + 1} ({folders[k]}): {lost:.0%} of its corners disagree with the joint solve of the four "
+                "CCDs (check the CCD's orientation, --board, and that views with one name show one board "
+                "position in every folder)"
+            )
+    if distance_mm is None:  # median board distance seen by CCD 1
+        centre = obj.mean(axis=0)
+        poses = [solution.board_pose(v) for v in np.nonzero(solution.inliers[0].any(axis=1))[0]]
+        dists = [np.linalg.norm(r @ centre + t) for r, t in poses]
+        distance_mm = float(np.median(dists))
+    Rs, Ts, stereo_rms, covs = [], [], [], []
+    for k in range(1, 4):
+        R, T = solution.pose(k)
+        Rs.append(R)
+        Ts.append(T)
+        covs.append(solution.pose_covariance(k))
+        shared = solution.inliers[0].any(axis=1) & solution.inliers[k].any(axis=1)
+        if shared.sum() < MIN_VIEWS:
+            raise RegistrationError(
+                f"CCD 1 and CCD {k + 1} share {int(shared.sum())} valid views; at least {MIN_VIEWS} needed"
+            )
+        both = np.concatenate([solution.residuals_px[c][shared][solution.inliers[c][shared]] for c in (0, k)])
+        stereo_rms.append(float(np.sqrt(np.mean(np.sum(both**2, axis=-1)))))
+    reg = Registration(
+        size,
+        board,
+        cams,
+        Rs,
+        Ts,
+        stereo_rms,
+        distance_mm,
+        [],
+        [],
+        failed,
+        0.0,
+        pose_covariance=covs,
+        corner_sigma_px=solution.sigma_px,
+        missing_views={n: ks for n, ks in view_files.missing.items()},
+    )
+    for k in range(1, 4):
+        u, v, sigma = joint.map_sigma_px(solution, k, size, distance_mm, cams[k].mirrored)
+        reg.map_sigma_px.append({"u": u, "v": v, "sigma": sigma})
+        mx, my = reg.maps(k + 1)
+        reg.covered_fraction.append(float(covered(mx, my, (size[1], size[0])).mean()))
+        common = [n for n in cams[0].views_used if n in cams[k].views_used]
+        reg.xor_before.append(float(np.mean([xor_ratio(images8[0][n], images8[k][n]) for n in common])))
+        reg.xor_after.append(float(np.mean([xor_ratio(images8[0][n], images8[k][n], mx, my) for n in common])))
+    reg.seconds_per_view = (time.perf_counter() - t0) / max(sum(len(f) for f in view_files.files), 1)
+    reg.views = ViewImages(images8, labels, solution, names)
+    problems = reg.quality_problems()
+    if problems:
+        raise RegistrationError("registration refused: " + "; ".join(problems))
+    return reg
+
+
+def from_pixel_transforms(
+    image_size, focal_px: float, transforms, distance_mm: float = 30500.0, mirrored=(False, False, False)
+) -> Registration:
     """Registration of four identical distortion-free cameras whose CCDs 2–4 see the scene
     through an in-plane shift (dx, dy px) and rotation (deg) about the image centre — the
     simulator's `misregistration` effect — expressed as poses (R about the optical axis, T in
-    the image plane) at `distance_mm`."""
+    the image plane) at `distance_mm`; `mirrored[k]` flips CCD k+2's image left–right after."""
     w, h = image_size
     k = np.array([[focal_px, 0, w / 2 - 0.5], [0, focal_px, h / 2 - 0.5], [0, 0, 1]], np.float64)
-    cam = CameraCalibration(k, np.zeros(5), 0.0, {}, np.zeros(0), [], {})
+    cams = [CameraCalibration(k, np.zeros(5), 0.0, {}, np.zeros(0), [], {}, m) for m in (False, *mirrored)]
     Rs, Ts = [], []
     for dx, dy, rot_deg in transforms:
         b = -np.deg2rad(rot_deg)
@@ -444,4 +700,4 @@ def from_pixel_transforms(image_size, focal_px: float, transforms, distance_mm: 
         t[:2] = -(distance_mm / focal_px) * (r2 @ np.array([dx, dy]))
         Rs.append(R)
         Ts.append(t)
-    return Registration((w, h), Board(3, 3, 1.0), [cam] * 4, Rs, Ts, [0.0] * 3, float(distance_mm), [], [], {}, 0.0)
+    return Registration((w, h), Board(3, 3, 1.0), cams, Rs, Ts, [0.0] * 3, float(distance_mm), [], [], {}, 0.0)

@@ -18,6 +18,9 @@ from .status import Status
 # Bilinear resampling reads a pixel's row and the next: a band needs this many rows beyond the
 # maps' largest row offset
 BAND_MARGIN_ROWS = 2
+# A map this close outside the image still samples its edge pixel: projection's rounding puts an
+# edge column's map at −1e-7 px, which must not flag the whole column outside the registration
+EDGE_TOLERANCE_PX = 1e-3
 
 
 @jax.jit
@@ -53,7 +56,8 @@ class RegisteredTiles:
         y = np.zeros((self.rows, self.w))
         x[: r1 - r0], y[: r1 - r0] = mx[r0:r1], my[r0:r1]
         start = r0 - self.margin
-        outside = (x < 0) | (x > self.w - 1) | (y < 0) | (y > self.h - 1)
+        tol = EDGE_TOLERANCE_PX
+        outside = (x < -tol) | (x > self.w - 1 + tol) | (y < -tol) | (y > self.h - 1 + tol)
         x, y = np.clip(x, 0, self.w - 1), np.clip(y, 0, self.h - 1)
         x0 = np.minimum(np.floor(x), self.w - 2).astype(np.int64)
         y0 = np.minimum(np.floor(y), self.h - 2).astype(np.int64)

@@ -2,7 +2,7 @@
 hybrid` identifies, over many seeds, on the target shapes a user calibrates with.
 
     python -m cohflash_experiments.calibration_pulls [--out out/calibration_pulls] [--seeds 50]
-        [--size 16] [--targets flat,tilted,uneven] [--conditions turbulence,static]
+        [--size 16] [--targets flat,tilted,uneven] [--conditions turbulence,static] [--first-seed 0]
 
 Targets (uniform reflectance 0.9 at 30.5 m, the instrument's errors of the hybrid study and a
 1.9 m path offset):
@@ -82,7 +82,7 @@ def pulls(doc: dict, truth: dict) -> dict[str, float]:
     return out
 
 
-def run(out: Path, seeds: int, size: int, targets, conditions):
+def run(out: Path, seeds: int, size: int, targets, conditions, first_seed: int = 0):
     out.mkdir(parents=True, exist_ok=True)
     inst = cf.Instrument.paper(3000, system_delay_s=2 * PATH_OFFSET_M / cf.SPEED_OF_LIGHT_M_PER_S)
     rows = []
@@ -90,7 +90,7 @@ def run(out: Path, seeds: int, size: int, targets, conditions):
         path = Path(tmp) / "calibration.h5"
         for name in targets:
             for condition in conditions:
-                for seed in range(seeds):
+                for seed in range(first_seed, first_seed + seeds):
                     scene = target(name, condition == "turbulence", size, seed)
                     simulate_to_file(path, scene, inst, size, size, seed=seed, progress=False)
                     with Capture(path) as cap:
@@ -132,8 +132,9 @@ def main():
     p.add_argument("--size", type=int, default=16, help="pixels per side")
     p.add_argument("--targets", default="flat,tilted,uneven", help="comma-separated: flat, tilted, uneven")
     p.add_argument("--conditions", default="turbulence,static", help="comma-separated: turbulence, static")
+    p.add_argument("--first-seed", type=int, default=0, help="first seed (to extend an earlier run with new seeds)")
     args = p.parse_args()
-    run(Path(args.out), args.seeds, args.size, args.targets.split(","), args.conditions.split(","))
+    run(Path(args.out), args.seeds, args.size, args.targets.split(","), args.conditions.split(","), args.first_seed)
 
 
 if __name__ == "__main__":

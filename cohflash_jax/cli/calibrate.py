@@ -25,7 +25,9 @@ def add_parser(sub) -> None:
         nargs=4,
         required=True,
         metavar=("CCD1_DIR", "CCD2_DIR", "CCD3_DIR", "CCD4_DIR"),
-        help="one folder of chessboard images per CCD; a view is the same file name in every folder",
+        help="one folder of chessboard images per CCD; a view is the same file name (suffix aside) in every folder; "
+        "a view missing from some folders is used in the others and named. CCDs may be mirrored or rotated: "
+        "corners are labelled by the board, and each CCD's orientation is found",
     )
     cr.add_argument("--board", required=True, help="inner corners COLSxROWS, e.g. 9x6")
     cr.add_argument(
@@ -78,37 +80,47 @@ def add_parser(sub) -> None:
 
 def run_registration(args) -> int:
     from cohflash_calibration.board import Board
-    from cohflash_calibration.registration import register, write_registration
-    from cohflash_calibration.report import save_report
+    from cohflash_calibration.registration import angle_deg, register, write_registration
+    from cohflash_calibration.report import save_report, verdict
 
     board = Board.parse(args.board, args.square_mm)
     reg = register(args.images, board, args.distance_mm, progress=not args.quiet)
     write_registration(args.out, reg)
     if args.report:
         save_report(args.report, reg)
-    print(f"wrote {args.out}: image {reg.image_size[0]}×{reg.image_size[1]}, working distance {reg.distance_mm:.0f} mm")
+    print(
+        f"wrote {args.out}: image {reg.image_size[0]}×{reg.image_size[1]}, working distance {reg.distance_mm:.0f} mm, "
+        f"corner noise {reg.corner_sigma_px:.3f} px (joint solve of the four CCDs)"
+    )
     for k, c in enumerate(reg.cameras, start=1):
-        kk = c.camera_matrix
+        kk, sd = c.camera_matrix, c.std_intrinsics
         print(
-            f"  CCD {k}: f = {kk[0, 0]:.2f} ± {c.std_intrinsics[0]:.2f} px, c = ({kk[0, 2]:.2f}, {kk[1, 2]:.2f}) px, "
+            f"  CCD {k}{' (mirrored)' if c.mirrored else ''}: f = {kk[0, 0]:.2f} ± {sd[0]:.2f} px, "
+            f"c = ({kk[0, 2]:.2f} ± {sd[2]:.2f}, {kk[1, 2]:.2f} ± {sd[3]:.2f}) px, "
             f"RMS {c.rms_px:.3f} px over {len(c.views_used)} views"
-            + (
-                f"; left out: {', '.join(f'{n} ({r})' for n, r in c.views_left_out.items())}"
-                if c.views_left_out
-                else ""
-            )
         )
-    import cv2
-
+        for name, reason in c.views_left_out.items():
+            print(f"    view {name} left out: {reason}")
+        if c.corners_rejected:
+            print(
+                "    outlier corners left out: "
+                + ", ".join(f"{n} ({m})" for n, m in sorted(c.corners_rejected.items()))
+            )
     for k, (r, t, s, b, a) in enumerate(zip(reg.R, reg.T, reg.stereo_rms_px, reg.xor_before, reg.xor_after), start=2):
-        ang = float(np.rad2deg(np.linalg.norm(cv2.Rodrigues(np.asarray(r))[0])))
+        rot_sd, t_sd = reg.pose_sigma(k - 2)
+        sigma_map = reg.map_sigma_px[k - 2]["sigma"] if reg.map_sigma_px else np.full(1, np.nan)
         print(
-            f"  CCD {k} vs CCD 1: rotation {ang:.3f}°, translation {np.linalg.norm(t):.2f} mm, stereo RMS {s:.3f} px; "
+            f"  CCD {k} vs CCD 1: rotation {angle_deg(r):.3f}° (σ {np.linalg.norm(rot_sd):.3f}°), translation "
+            f"({t[0]:.2f}, {t[1]:.2f}, {t[2]:.2f}) ± ({t_sd[0]:.2f}, {t_sd[1]:.2f}, {t_sd[2]:.2f}) mm, "
+            f"stereo RMS {s:.3f} px; pixel map σ median {np.nanmedian(sigma_map):.3f} px; "
             f"XOR misalignment {b:.2%} → {a:.2%}"
         )
-    if reg.failed:
-        print("views left out (board not found): " + ", ".join(reg.failed))
+    for path, reason in reg.failed.items():
+        print(f"  {path}: {reason}")
+    for name, ccds in reg.missing_views.items():
+        print(f"  view {name} missing from CCD {', '.join(map(str, ccds))}: used in the other CCDs only")
     print(f"{reg.seconds_per_view * 1e3:.0f} ms per view")
+    print(verdict(reg))
     return 0
 
 
