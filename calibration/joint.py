@@ -279,17 +279,23 @@ def map_function(layout: Layout, camera: int, distance_mm: float, mirrored_width
     return fn
 
 
+def map_sigma_at(solution: JointSolution, camera: int, pixels, image_width: int, distance_mm: float, mirrored: bool):
+    """1σ (px) of the pixel map at CCD 1 `pixels` (P, 2): the larger axis of the map's 2×2
+    covariance, propagated from the joint covariance (board poses marginalised)."""
+    fn = map_function(solution.layout, camera, distance_mm, image_width if mirrored else None)
+    jac = np.asarray(jax.jit(jax.jacfwd(fn))(jnp.asarray(solution.params), jnp.asarray(pixels, jnp.float64)))
+    cov = np.einsum("pin,nm,pjm->pij", jac, solution.covariance, jac)
+    return np.sqrt(np.linalg.eigvalsh(cov)[:, -1].clip(0))
+
+
 def map_sigma_px(
     solution: JointSolution, camera: int, image_size, distance_mm: float, mirrored: bool, grid=(32, 24)
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """1σ of the pixel map (the larger axis of its 2×2 covariance, px) on a grid × grid of CCD 1
-    pixels: (u (gx,), v (gy,), σ (gy, gx)), propagated from the joint covariance."""
+    """The map's 1σ on a grid × grid of CCD 1 pixels: (u (gx,), v (gy,), σ (gy, gx)). It grows
+    fast outside the part of the image the board covered, where the model is extrapolated."""
     w, h = image_size
     u = np.linspace(0, w - 1, grid[0])
     v = np.linspace(0, h - 1, grid[1])
     pix = np.stack(np.meshgrid(u, v), -1).reshape(-1, 2)
-    fn = map_function(solution.layout, camera, distance_mm, w if mirrored else None)
-    jac = np.asarray(jax.jit(jax.jacfwd(fn))(jnp.asarray(solution.params), jnp.asarray(pix)))  # (P, 2, n)
-    cov = np.einsum("pin,nm,pjm->pij", jac, solution.covariance, jac)
-    sigma = np.sqrt(np.linalg.eigvalsh(cov)[:, -1].clip(0))
+    sigma = map_sigma_at(solution, camera, pix, w, distance_mm, mirrored)
     return u, v, sigma.reshape(grid[1], grid[0])
