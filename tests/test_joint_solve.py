@@ -99,3 +99,18 @@ def test_one_bad_corner_is_rejected_alone_and_the_view_kept():
     assert list(sol.dropped_views) == [(1, 3)]
     assert "out of sync" in sol.dropped_views[(1, 3)]
     assert np.linalg.norm(sol.params[LAYOUT.camera_pose(1)] - x_true[LAYOUT.camera_pose(1)]) < 0.5
+
+
+def test_xor_thresholds_come_from_covered_pixels_only():
+    """A low-contrast board (grey 30–60, normal for SWIR) resampled by a map that leaves 40 % of
+    CCD 1 uncovered: `remap` fills those with 0, which used to drag CCD k's Otsu threshold down
+    and make every covered pixel 'white' (60.8 % read for 34.7 %). The same image must XOR to 0."""
+    from cohflash_calibration.registration import xor_ratio
+
+    h, w = 60, 80
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = np.where(((xx // 10) + (yy // 10)) % 2 == 0, 30, 60).astype(np.uint8)
+    map_x = (xx + 0.0).astype(np.float32)
+    map_x[:, : int(0.4 * w)] = -5.0  # not covered
+    map_y = yy.astype(np.float32)
+    assert xor_ratio(img, img, map_x, map_y) == 0.0
