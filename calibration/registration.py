@@ -518,9 +518,13 @@ def detect_all(view_files, board: Board, progress: bool):
     return size, images8, raw, failed
 
 
-def register(folders, board: Board, distance_mm: float | None = None, progress: bool = True) -> Registration:
+def register(
+    folders, board: Board, distance_mm: float | None = None, progress: bool = True, mirrored: dict | None = None
+) -> Registration:
     """Register four CCDs from chessboard views (folder k = CCD k; a view is the same file name
-    in every folder). Refuses, naming the cause, where the result fails its quality checks."""
+    in every folder). Whether CCDs 2–4 are mirrored is found from the views (their poses agree
+    with CCD 1's under one hypothesis only), or taken from `mirrored` ({ccd: bool}) where the
+    views cannot tell. Refuses, naming the cause, where the result fails its quality checks."""
     if len(folders) != 4:
         raise RegistrationError(f"four image folders are needed (CCD 1–4), got {len(folders)}")
     if distance_mm is not None and not (math.isfinite(distance_mm) and distance_mm > 0):
@@ -549,13 +553,21 @@ def register(folders, board: Board, distance_mm: float | None = None, progress: 
     orientations = []
     for k in range(1, 4):
         tried = []
-        for mirrored in (False, True):
+        hypotheses = (False, True) if mirrored is None or k + 1 not in mirrored else (mirrored[k + 1],)
+        for flip in hypotheses:
             try:
-                tried.append(orient(obj, ref, labelled(k, mirrored), size, mirrored))
+                tried.append(orient(obj, ref, labelled(k, flip), size, flip))
             except RegistrationError as exc:
                 error = exc
         if not tried:
             raise RegistrationError(f"CCD {k + 1} ({folders[k]}): {error}; failed: {failed_in(k)}") from None
+        if len(tried) == 2 and max(o.spread_deg for o in tried) < CONSENSUS_DEG:
+            raise RegistrationError(
+                f"CCD {k + 1} ({folders[k]}): cannot tell whether it is mirrored — its views agree with CCD 1's "
+                f"either way ({tried[0].spread_deg:.2f}° normal, {tried[1].spread_deg:.2f}° mirrored): the board was "
+                "held at too few orientations. Tilt it in different directions across the views, or state it "
+                f"with --mirrored {k + 1}=yes|no"
+            )
         orientations.append(min(tried, key=lambda o: o.spread_deg))
     # the joint solve over every view any CCD saw
     names = sorted(set().union(*(r.keys() for r in raw)))

@@ -30,11 +30,11 @@ def rig():
 
 @pytest.fixture(scope="module")
 def views(tmp_path_factory, rig):
-    """30 low-contrast 16-bit views per CCD (SWIR-like), plus one view whose board is
+    """16 low-contrast 16-bit views per CCD (SWIR-like), plus one view whose board is
     partly outside CCD 3's image and one blank view in CCD 2."""
     root = tmp_path_factory.mktemp("rig")
     rng = np.random.default_rng(0)
-    poses = board_poses(30, rng, BOARD)
+    poses = board_poses(16, rng, BOARD)
     poses.append((poses[0][0], poses[0][1] + np.array([330.0, 0.0, 0.0])))  # board off the right edge
     dirs = write_rig_views(
         root,
@@ -75,7 +75,7 @@ def test_recovers_intrinsics_and_poses_of_known_cameras(rig, registration):
 def test_failed_views_are_listed_and_left_out(views, registration):
     failed = set(registration.failed)
     assert str(views[1] / "view_000.png") in failed  # blank
-    assert any(f.endswith("view_030.png") for f in failed)  # board partly outside
+    assert any(f.endswith("view_016.png") for f in failed)  # board partly outside
     assert "view_000" not in registration.cameras[1].views_used
     assert "view_000" in registration.cameras[0].views_used
 
@@ -89,8 +89,17 @@ def test_maps_match_the_true_cameras_and_xor_drops(rig, registration):
         tx, ty = pixel_maps(
             true[0], true[k - 1], rig[k - 1].R, rig[k - 1].T, rig[0].image_size, registration.distance_mm
         )
-        inner = (slice(40, -40), slice(40, -40))
-        assert np.max(np.hypot(mx - tx, my - ty)[inner]) < 0.5
+        err = np.hypot(mx - tx, my - ty)
+        # everywhere within 4 of its stated σ; where the board went, right to a tenth of a pixel
+        hull = cv2.convexHull(np.concatenate(list(registration.views.corners[0].values())).astype(np.float32))
+        m = registration.map_sigma_px[k - 2]
+        covered = []
+        for j, v in enumerate(np.round(m["v"]).astype(int)):
+            for i, u in enumerate(np.round(m["u"]).astype(int)):
+                assert err[v, u] < 4 * m["sigma"][j, i] + 0.05, (k, u, v, err[v, u], m["sigma"][j, i])
+                if cv2.pointPolygonTest(hull, (float(u), float(v)), False) >= 0:
+                    covered.append(err[v, u])
+        assert len(covered) > 300 and np.median(covered) < 0.1, (len(covered), np.median(covered))
     for before, after in zip(registration.xor_before, registration.xor_after):
         assert after < 0.02 < before  # the paper reports 1.5–2 % after registration
 

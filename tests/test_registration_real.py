@@ -23,7 +23,7 @@ from cohflash_calibration.registration import (
 )
 from cohflash_jax.cli import main
 
-from .independent_writer import PAPER_FREQUENCIES_HZ, Writer
+from .independent_writer import Writer
 
 DATA = Path(__file__).parent / "data" / "opencv_stereo"
 BOARD = Board(9, 6, 25.0)  # the sample's squares are about an inch; the size only scales T
@@ -161,9 +161,9 @@ def test_a_mirrored_ccd_is_resampled_end_to_end_in_reconstruct(tmp_path):
     """A capture whose CCD 4 image is flipped left–right (a CCD behind a mirror), written by the
     independent writer: with a registration that says so, the depth map is the unflipped
     capture's; without it, CCD 4's pixels pair with the wrong scene points and depth is lost."""
-    h, w = 12, 20
+    h, w = 8, 8  # test_carrier's shape: the plain programs compile once a run
     depth = 30.5 + 0.002 * np.arange(w)[None, :] + np.zeros((h, w))  # a ramp: mirroring matters
-    writer = Writer(frequencies_hz=PAPER_FREQUENCIES_HZ[:600])
+    writer = Writer()
     plain_cap, mirrored_cap = tmp_path / "plain.h5", tmp_path / "mirrored.h5"
     writer.write(plain_cap, depth, np.random.default_rng(3))
 
@@ -185,14 +185,22 @@ def test_a_mirrored_ccd_is_resampled_end_to_end_in_reconstruct(tmp_path):
         out = tmp_path / f"depth {name}.h5"
         assert main(["reconstruct", str(cap), "--out", str(out), "--quiet", *extra]) == 0
         with h5py.File(out) as f:
-            results[name] = (f["depth_m"][()], f["valid"][()].astype(bool))
-    d0, v0 = results["plain"]
-    d1, v1 = results["mirrored, registered"]
+            results[name] = (f["depth_m"][()], f["valid"][()].astype(bool), f["sigma_m"][()])
+    d0, v0, s0 = results["plain"]
+    d1, v1, _ = results["mirrored, registered"]
     assert v0.all() and v1.all()
     assert np.max(np.abs(d1 - d0)) < 1e-6  # the same frames, resampled at whole pixels
-    d2, v2 = results["mirrored, raw"]
-    # unregistered, CCD 4 carries the mirror pixel's tone and carrier: the depths move by a
-    # sizeable part of their σ (3 of the 4 CCDs still carry the pixel's own tone)
-    moved = np.where(v2, np.abs(d2 - d0), np.inf)
-    print(f"median |depth change| unregistered: {np.median(moved) * 1e3:.2f} mm")
-    assert np.median(moved) > 0.5e-3
+    d2, v2, _ = results["mirrored, raw"]
+    # unregistered, CCD 4 carries the mirror pixel's tone and carrier (3 of the 4 CCDs still carry
+    # the pixel's own): the depths move, far beyond the registered path's rounding
+    moved = np.abs(d2 - d0)[v2]
+    print(f"median |depth change| unregistered: {np.median(moved) * 1e3:.2f} mm, σ {np.median(s0) * 1e3:.2f} mm")
+    assert np.max(moved) > max(1e-4, 100 * np.max(np.abs(d1 - d0)))
+
+
+def test_mirrored_option_is_checked_before_any_work(folders, tmp_path, capsys):
+    out = tmp_path / "registration.json"
+    args = ["calibrate", "registration", "--images", *(str(folders[k]) for k in ("L", "R", "L_png", "R_png"))]
+    rc = main([*args, "--board", "9x6", "--square-mm", "25", "--out", str(out), "--mirrored", "5=yes", "--quiet"])
+    assert rc == 2 and not out.exists()
+    assert "--mirrored '5=yes': expected CCD=yes|no with CCD 2, 3 or 4" in capsys.readouterr().err

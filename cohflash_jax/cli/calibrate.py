@@ -41,6 +41,14 @@ def add_parser(sub) -> None:
         default=None,
         help="working distance for the pixel maps (default: median board distance)",
     )
+    cr.add_argument(
+        "--mirrored",
+        action="append",
+        default=[],
+        metavar="CCD=yes|no",
+        help="say whether CCD 2, 3 or 4 sees the scene mirrored (behind an odd number of mirrors), where the "
+        "views cannot tell (found from the views by default); repeatable",
+    )
     add_quiet(cr)
     cr.set_defaults(func=run_registration)
     ch = calsub.add_parser(
@@ -84,7 +92,13 @@ def run_registration(args) -> int:
     from cohflash_calibration.report import save_report, verdict
 
     board = Board.parse(args.board, args.square_mm)
-    reg = register(args.images, board, args.distance_mm, progress=not args.quiet)
+    mirrored = {}
+    for item in args.mirrored:
+        ccd, _, answer = item.partition("=")
+        if ccd.strip() not in ("2", "3", "4") or answer.strip().lower() not in ("yes", "no"):
+            raise ValueError(f"--mirrored {item!r}: expected CCD=yes|no with CCD 2, 3 or 4 (e.g. --mirrored 4=yes)")
+        mirrored[int(ccd)] = answer.strip().lower() == "yes"
+    reg = register(args.images, board, args.distance_mm, progress=not args.quiet, mirrored=mirrored or None)
     write_registration(args.out, reg)
     if args.report:
         save_report(args.report, reg)
