@@ -30,6 +30,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from cohflash_jax.runtime import cpu_description
+
 READ_ONCE = """
 import sys, h5py, numpy as np
 with h5py.File(sys.argv[1]) as f:
@@ -67,23 +69,6 @@ with h5py.File(sys.argv[1]) as f:
         depth[r0 : r0 + 32] = (k / n * C / (2 * (freqs[1] - freqs[0]))).reshape(-1, w)
 print(float(np.median(depth)))
 """
-
-
-def cpu_description() -> str:
-    model = platform.processor() or "unknown CPU"
-    flags = set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-            if line.startswith("flags"):
-                flags = set(line.split(":", 1)[1].split())
-                break
-    except OSError:
-        pass
-    isa = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "SSE/other"
-    xla = os.environ.get("XLA_FLAGS", "")
-    return f"{model}; {os.cpu_count()} logical CPUs; ISA {isa}" + (f"; XLA_FLAGS={xla}" if xla else "")
 
 
 def timed(argv: list[str], env: dict | None = None) -> float:

@@ -33,8 +33,7 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parent))
-from bench_process import cpu_description  # noqa: E402
+from cohflash_jax.runtime import cpu_description
 
 WHOLE = r"""
 import json, sys, time

@@ -321,3 +321,24 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
     except OSError:
         EXECUTABLES.folder = None
     return folder
+
+
+def cpu_description() -> str:
+    """The CPU as benchmarks and studies name it: model, logical CPUs, the widest vector ISA
+    XLA can use, and XLA_FLAGS where set (`--xla_cpu_max_isa=AVX2` holds XLA to AVX2)."""
+    import platform
+
+    model = platform.processor() or "unknown CPU"
+    flags = set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+            if line.startswith("flags"):
+                flags = set(line.split(":", 1)[1].split())
+                break
+    except OSError:
+        pass
+    isa = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "SSE/other"
+    xla = os.environ.get("XLA_FLAGS", "")
+    return f"{model}; {os.cpu_count()} logical CPUs; ISA {isa}" + (f"; XLA_FLAGS={xla}" if xla else "")

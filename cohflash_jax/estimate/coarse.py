@@ -130,6 +130,24 @@ class AbstractCoarseStage(eqx.Module):
     def grid_step_m(self):
         """Depth between grid points: a depth read off the grid is uniform within ±½ of it."""
 
+    def rival_exclusion_points(self) -> int:
+        """Grid points either side of a peak that belong to its tone (main lobe and first
+        sidelobes): a rival peak lies beyond them."""
+        return RIVAL_EXCLUSION_POINTS
+
+    def candidates(self, coarse: CoarseSpectrum, count: int) -> Float[Array, "K P"]:
+        """Depths (m) of the peak and the next `count` − 1 strongest grid points, each beyond
+        `rival_exclusion_points` of those before it: the rivals a schedule's sidelobes offer
+        (the time-domain ML fits each, `TimeDomainML`)."""
+        g = jnp.arange(coarse.power.shape[-1])
+        power, peak, depths = coarse.power, coarse.peak, []
+        exclusion = self.rival_exclusion_points()
+        for _ in range(count):
+            depths.append(self.depth(CoarseSpectrum(power, peak), interpolate=True))
+            power = jnp.where(jnp.abs(g[None, :] - peak[:, None]) <= exclusion, -1.0, power)
+            peak = first_argmax(power)
+        return jnp.stack(depths)
+
     @property
     @abc.abstractmethod
     def description(self) -> str:
@@ -153,6 +171,9 @@ class UniformSpectrum(AbstractCoarseStage):
     weights: Float[Array, " K"]
     detection: Detection
     min_bin: int = eqx.field(static=True, default=1)
+
+    def rival_exclusion_points(self) -> int:
+        return UNIFORM_RIVAL_EXCLUSION_BINS
 
     @classmethod
     def of(cls, geometry: SweepGeometry, weights, min_bin: int, false_alarm: float) -> UniformSpectrum:
@@ -204,6 +225,7 @@ class UniformSpectrum(AbstractCoarseStage):
 
 
 RIVAL_EXCLUSION_POINTS = 2 * POINTS_PER_ENVELOPE  # the main lobe and its first sidelobes
+UNIFORM_RIVAL_EXCLUSION_BINS = 2  # a tone's Hann main lobe spans ±2 DFT bins
 
 
 def delay_grid(
@@ -242,18 +264,6 @@ class DelayPeriodogram(AbstractCoarseStage):
 
     def detection_energy(self, coarse):
         return coarse.power
-
-    def candidates(self, coarse: CoarseSpectrum, count: int) -> Float[Array, "K P"]:
-        """Depths (m) of the peak and the next `count` − 1 strongest grid points, each beyond
-        ±2 envelope widths of those before it: the rivals a schedule's sidelobes offer (the
-        time-domain ML fits each, `TimeDomainML`)."""
-        g = jnp.arange(coarse.power.shape[-1])
-        power, peak, depths = coarse.power, coarse.peak, []
-        for _ in range(count):
-            depths.append(self.depth(CoarseSpectrum(power, peak), interpolate=True))
-            power = jnp.where(jnp.abs(g[None, :] - peak[:, None]) <= RIVAL_EXCLUSION_POINTS, -1.0, power)
-            peak = first_argmax(power)
-        return jnp.stack(depths)
 
     def depth(self, coarse, interpolate):
         at_peak = self.depths_m[coarse.peak]

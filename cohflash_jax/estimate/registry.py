@@ -42,6 +42,11 @@ METHODS: dict[str, Method] = {
     "interp": Method(InterpolatedPeak.build, "the DFT peak interpolated between bins"),
     "candan": Method(CandanPeak.build, "the DFT peak interpolated from its complex neighbours (Jacobsen–Candan)"),
     "ml": Method(phase_locked_ml, "phase-locked maximum likelihood, σ at the CRLB"),
+    "ml-time": Method(
+        TimeDomainML.build,
+        "the same likelihood fitted in the time domain over every frame, whatever the sweep (the slowest; "
+        "`ml` picks it for non-uniform schedules)",
+    ),
 }
 
 
