@@ -146,10 +146,20 @@ def _describe_json(path: Path) -> str:
     if kind == "cohflash-calibration":
         return _describe_calibration(path, doc, {})
     if kind == "cohflash-registration":
-        poses = [
-            f"CCD {p['ccd']}: rotation {p['rotation_deg']:.3f}°, T {np.round(p['T_mm'], 3).tolist()} mm, "
-            f"stereo RMS {p['stereo_rms_px']:.3f} px"
-            for p in doc.get("relative_poses", [])
+        poses = []
+        for p in doc.get("relative_poses", []):
+            sigma = p.get("rotation_sigma_deg")
+            poses.append(
+                f"CCD {p['ccd']}{' (mirrored)' if p.get('mirrored') else ''}: rotation {p['rotation_deg']:.3f}°"
+                + (f" (σ {np.linalg.norm(sigma):.3f}°)" if sigma else "")
+                + f", T {np.round(p['T_mm'], 3).tolist()} mm"
+                + (f" ± {np.round(p['T_sigma_mm'], 3).tolist()}" if p.get("T_sigma_mm") else "")
+                + f", stereo RMS {p['stereo_rms_px']:.3f} px"
+            )
+        dropped = [
+            f"CCD {k + 1} {name}: {reason}"
+            for k, cam in enumerate(doc.get("cameras", []))
+            for name, reason in cam.get("views_left_out", {}).items()
         ]
         return "\n".join(
             [
@@ -157,7 +167,9 @@ def _describe_json(path: Path) -> str:
                 f"image {doc.get('image_size')}; board {doc.get('board')}; working distance "
                 f"{doc.get('working_distance_mm', float('nan')):.1f} mm",
                 *poses,
-                f"views left out: {len(doc.get('failed_views', {}))}",
+                f"files not used: {len(doc.get('failed_views', {}))}; views missing from a folder: "
+                f"{len(doc.get('missing_views', {}))}; views dropped in single CCDs: {len(dropped)}",
+                *dropped,
             ]
         )
     if kind == "cohflash-design" or "problem" in doc:  # design JSONs before format v1 had no format key
