@@ -111,7 +111,7 @@ def test_the_joint_pose_agrees_with_opencvs_joint_stereo_solve_within_its_sigma(
     assert rms < 0.4
 
 
-def test_mirrored_rotated_out_of_sync_corrupt_and_missing_views_in_one_rig(folders, plain):
+def test_mirrored_rotated_out_of_sync_corrupt_and_missing_views_in_one_rig(folders, plain, tmp_path, capsys):
     reg = register([folders[k] for k in ("L", "R_sync", "L_180", "R_mirror")], BOARD, progress=False)
     # CCD 3 is CCD 1 turned by 180°: exactly 180° about the optical axis, no translation
     assert angle_deg(reg.R[1] @ rz180().T) < 1e-3 and np.linalg.norm(reg.T[1]) < 1e-3
@@ -131,6 +131,12 @@ def test_mirrored_rotated_out_of_sync_corrupt_and_missing_views_in_one_rig(folde
     assert "corrupt" in reason
     assert reg.missing_views == {"view05": [4]}
     assert max(reg.stereo_rms_px) < 0.4
+    # the file says so, and `info` shows it
+    path = write_registration(tmp_path / "rig.json", reg)
+    assert load_registration(path).cameras[3].mirrored
+    assert main(["info", str(path)]) == 0
+    text = capsys.readouterr().out
+    assert "CCD 4 (mirrored)" in text and "CCD 2 view07: " in text and "views missing from a folder: 1" in text
 
 
 @pytest.mark.parametrize("board", ["7x5", "8x6", "3x3"])
