@@ -115,7 +115,8 @@ def timed_process(capture: Path, method: str, out: Path) -> float:
     return time.perf_counter() - t0
 
 
-def posterior_rows(frames, inst, pixels: int, crlb_m: float) -> dict:
+def posterior_rows(frames, inst, truth_m: np.ndarray, pixels: int, crlb_m: float) -> dict:
+    """emcee on the first `pixels` pixels (row-major): coverage of each pixel's own true depth."""
     options = ReconstructOptions(method="ml")
     plan = build_plan(inst, options, 16383.0)
     n, h, w = frames.shape[1:]
@@ -137,11 +138,16 @@ def posterior_rows(frames, inst, pixels: int, crlb_m: float) -> dict:
                 )
             )
     seconds = (time.perf_counter() - t0) / pixels
-    truth = DISTANCE_M % plan.geometry.ambiguity_m
-    covers = lambda p, level: p.covers(truth, level) or p.covers(DISTANCE_M, level)
+    ambiguity = plan.geometry.ambiguity_m
+    truths = truth_m.ravel()[:pixels]
+
+    def covers(post, truth, level):  # the posterior lives in the unambiguous window: fold the truth onto it
+        centre = post.ml_depth_m
+        return post.covers(centre + fold(truth - centre, ambiguity), level)
+
     return {
-        "posterior_cover68": float(np.mean([covers(p, 68) for p in posts])),
-        "posterior_cover95": float(np.mean([covers(p, 95) for p in posts])),
+        "posterior_cover68": float(np.mean([covers(p, t, 68) for p, t in zip(posts, truths)])),
+        "posterior_cover95": float(np.mean([covers(p, t, 95) for p, t in zip(posts, truths)])),
         "posterior_half68_over_crlb": float(
             np.median([(p.interval68_m[1] - p.interval68_m[0]) / 2 / crlb_m for p in posts])
         ),
@@ -214,7 +220,7 @@ def run(out: Path, size: int, frame_counts, posterior_pixels: int, process: bool
                         flush=True,
                     )
                 if posterior_pixels:
-                    post = posterior_rows(frames, inst, posterior_pixels, crlb)
+                    post = posterior_rows(frames, inst, truth, posterior_pixels, crlb)
                     rows.append(
                         {
                             "frames": n,
