@@ -283,3 +283,44 @@ def sample_pixel(
         note,
         int(data.status),
     )
+
+
+def sample_pixels(
+    instrument,
+    frames,
+    *,
+    pixels: int | None = None,
+    rng: np.random.Generator | None = None,
+    max_steps: int = 20000,
+    quiet: bool = True,
+) -> list[Posterior]:
+    """emcee posteriors of the first `pixels` pixels (row-major; all by default) of in-memory
+    frames (4, N, H, W) or (4, N, P), under the nominal calibration of `instrument`: what
+    studies and tests sample (the CLI's `uncertainty` reads a capture file instead).
+    `quiet` silences the not-converged warnings (each posterior records it)."""
+    from .reconstruct import ReconstructOptions, build_plan
+
+    options = ReconstructOptions(method="ml")
+    plan = build_plan(instrument, options, float(instrument.sensor.adc_max_dn))
+    frames = np.asarray(frames)
+    flat = frames.reshape(4, frames.shape[1], -1)
+    count = flat.shape[-1] if pixels is None else min(pixels, flat.shape[-1])
+    data = pixel_data(plan, jnp.asarray(flat[:, :, :count]), options.window_bins)
+    rng = np.random.default_rng(0) if rng is None else rng
+    posts = []
+    with warnings.catch_warnings():
+        if quiet:
+            warnings.simplefilter("ignore")
+        for p in range(count):
+            posts.append(
+                sample_pixel(
+                    plan.model,
+                    jax.tree_util.tree_map(lambda x, p=p: x[p], data),
+                    ambiguity_m=plan.geometry.ambiguity_m,
+                    bin_depth_m=plan.geometry.bin_depth_m,
+                    ripple_m=plan.geometry.ripple_m,
+                    rng=rng,
+                    max_steps=max_steps,
+                )
+            )
+    return posts

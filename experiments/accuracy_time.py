@@ -32,7 +32,6 @@ import subprocess
 import sys
 import tempfile
 import time
-import warnings
 from pathlib import Path
 
 import jax
@@ -48,12 +47,11 @@ from cohflash_jax.reconstruct import (
     DEFAULT_SNR_THRESHOLD_DB,
     ReconstructOptions,
     applied_snr_threshold_db,
-    build_plan,
     reconstruct_array,
 )
 from cohflash_jax.runtime import cpu_description
 from cohflash_jax.simulate import simulate_to_file
-from cohflash_jax.uncertainty import pixel_data, sample_pixel
+from cohflash_jax.uncertainty import sample_pixels
 
 NOISE = ("shot_noise", "read_noise", "quantization")
 BAND_HZ = 5.9e9
@@ -117,28 +115,11 @@ def timed_process(capture: Path, method: str, out: Path) -> float:
 
 def posterior_rows(frames, inst, truth_m: np.ndarray, pixels: int, crlb_m: float) -> dict:
     """emcee on the first `pixels` pixels (row-major): coverage of each pixel's own true depth."""
-    options = ReconstructOptions(method="ml")
-    plan = build_plan(inst, options, 16383.0)
-    n, h, w = frames.shape[1:]
-    data = pixel_data(plan, jax.numpy.asarray(frames.reshape(4, n, h * w)[:, :, :pixels]), options.window_bins)
-    rng = np.random.default_rng(0)
-    posts, t0 = [], time.perf_counter()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        for p in range(pixels):
-            d = jax.tree_util.tree_map(lambda x, p=p: x[p], data)
-            posts.append(
-                sample_pixel(
-                    plan.model,
-                    d,
-                    ambiguity_m=plan.geometry.ambiguity_m,
-                    bin_depth_m=plan.geometry.bin_depth_m,
-                    ripple_m=plan.geometry.ripple_m,
-                    rng=rng,
-                )
-            )
+    sample_pixels(inst, frames, pixels=1, max_steps=250)  # compiles the pixels' data program: not timed
+    t0 = time.perf_counter()
+    posts = sample_pixels(inst, frames, pixels=pixels)
     seconds = (time.perf_counter() - t0) / pixels
-    ambiguity = plan.geometry.ambiguity_m
+    ambiguity = C / (2 * inst.sweep.step_hz)
     truths = truth_m.ravel()[:pixels]
 
     def covers(post, truth, level):  # the posterior lives in the unambiguous window: fold the truth onto it

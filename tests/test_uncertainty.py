@@ -9,8 +9,7 @@ import pytest
 
 import cohflash_jax as cf
 from cohflash_jax.cli import main
-from cohflash_jax.reconstruct import ReconstructOptions, build_plan
-from cohflash_jax.uncertainty import pixel_data, sample_pixel
+from cohflash_jax.uncertainty import sample_pixels
 
 from .conftest import N_FRAMES
 
@@ -18,26 +17,7 @@ NOISE = ("shot_noise", "read_noise", "dark_current", "quantization")
 
 
 def _posteriors(inst, frames, max_steps=20000, seed=0):
-    options = ReconstructOptions(method="ml")
-    plan = build_plan(inst, options, 16383.0)
-    n, h, w = frames.shape[1:]
-    data = pixel_data(plan, jax.numpy.asarray(frames.reshape(4, n, h * w)), options.window_bins)
-    rng = np.random.default_rng(seed)
-    out = []
-    for p in range(h * w):
-        d = jax.tree_util.tree_map(lambda x: x[p], data)
-        out.append(
-            sample_pixel(
-                plan.model,
-                d,
-                ambiguity_m=plan.geometry.ambiguity_m,
-                bin_depth_m=plan.geometry.bin_depth_m,
-                ripple_m=plan.geometry.ripple_m,
-                rng=rng,
-                max_steps=max_steps,
-            )
-        )
-    return out
+    return sample_pixels(inst, frames, rng=np.random.default_rng(seed), max_steps=max_steps, quiet=False)
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")
