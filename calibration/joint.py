@@ -157,6 +157,11 @@ class JointSolution:
         return np.sqrt(np.diag(self.covariance[s, s]))
 
 
+def rms_px(errors) -> float:
+    """RMS length (px) of 2-D reprojection errors (..., 2)."""
+    return float(np.sqrt(np.mean(np.sum(np.asarray(errors) ** 2, axis=-1))))
+
+
 def levenberg_marquardt(normal_equations, trial_cost, x0, max_iter: int = 200, tol: float = 1e-12):
     """Minimise |r(x)|² from x0 with Marquardt's diagonal scaling; returns x.
     `normal_equations(x)` → (JᵀJ, Jᵀr, |r|²); `trial_cost(x, JᵀJ, Jᵀr, λ)` → (step, |r(x + step)|²)."""
@@ -218,14 +223,19 @@ def solve(initial: np.ndarray, layout: Layout, object_points: np.ndarray, observ
     inliers = seen.copy()
     dropped = {}
     x = np.asarray(initial, np.float64)
-    for _ in range(MAX_ROUNDS):
+
+    def fitted(x, inliers):
+        """Levenberg–Marquardt on the inliers from x: (x, errors of every corner (…, 2))."""
         w = jnp.asarray(inliers, jnp.float64)
         x = levenberg_marquardt(
-            lambda p, w=w: normal_equations(p, layout, obj, obs, w),
-            lambda p, a, b, lam, w=w: trial_cost(p, a, b, lam, layout, obj, obs, w),
+            lambda p: normal_equations(p, layout, obj, obs, w),
+            lambda p, a, b, lam: trial_cost(p, a, b, lam, layout, obj, obs, w),
             x,
         )
-        err = np.asarray(predict(jnp.asarray(x), layout, obj)) - np.asarray(observed)
+        return x, np.asarray(predict(jnp.asarray(x), layout, obj)) - np.asarray(observed)
+
+    for _ in range(MAX_ROUNDS):
+        x, err = fitted(x, inliers)
         norm = np.linalg.norm(err, axis=-1)
         # σ of one coordinate from the inliers' median error norm (Rayleigh: median = 1.1774σ)
         sigma = float(np.median(norm[inliers]) / 1.1774)
@@ -252,13 +262,15 @@ def solve(initial: np.ndarray, layout: Layout, object_points: np.ndarray, observ
         if np.array_equal(new, inliers):
             break
         inliers = new
+    else:  # the rounds ran out on a changed inlier set: fit it before stating anything of it
+        x, err = fitted(x, inliers)
     w = jnp.asarray(inliers, jnp.float64)
     jtj, _, cost = normal_equations(jnp.asarray(x), layout, obj, obs, w)
     dof = max(int(inliers.sum()) * 2 - layout.size, 1)
     sigma2 = float(cost) / dof
     cov = sigma2 * np.linalg.pinv(np.asarray(jtj))
-    err = np.where(seen[..., None], np.asarray(predict(jnp.asarray(x), layout, obj)) - observed, np.nan)
-    rms = float(np.sqrt(np.mean(np.sum(err[inliers] ** 2, axis=-1))))
+    err = np.where(seen[..., None], err, np.nan)
+    rms = rms_px(err[inliers])
     return JointSolution(x, cov, layout, inliers, err, float(np.sqrt(sigma2)), rms, dropped)
 
 

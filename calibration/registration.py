@@ -19,7 +19,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cohflash_jax.fileio import read_json
-from cohflash_jax.registered import EDGE_TOLERANCE_PX
+from cohflash_jax.registered import inside_image
 
 from . import joint
 from .board import Board
@@ -188,10 +188,8 @@ def pixel_maps(
 
 
 def covered(map_x: np.ndarray, map_y: np.ndarray, shape) -> np.ndarray:
-    """CCD 1 pixels whose map lands inside CCD k's image (to `EDGE_TOLERANCE_PX`)."""
-    h, w = shape
-    tol = EDGE_TOLERANCE_PX
-    return (map_x >= -tol) & (map_x <= w - 1 + tol) & (map_y >= -tol) & (map_y <= h - 1 + tol)
+    """CCD 1 pixels whose map lands inside CCD k's image of `shape` (H, W)."""
+    return inside_image(map_x, map_y, shape[1], shape[0])
 
 
 def otsu_on(img8: np.ndarray, where: np.ndarray) -> np.ndarray:
@@ -535,10 +533,10 @@ def register(
     obj = board.object_points().astype(np.float64)
     w = size[0]
 
-    def labelled(k: int, mirrored: bool) -> dict:
+    def labelled(k: int, flipped: bool) -> dict:
         flip = lambda c: np.stack([w - 1 - c[:, 0], c[:, 1]], axis=1)
         return {
-            n: label_by_board(images8[k][n][:, ::-1] if mirrored else images8[k][n], flip(c) if mirrored else c, board)
+            n: label_by_board(images8[k][n][:, ::-1] if flipped else images8[k][n], flip(c) if flipped else c, board)
             for n, c in raw[k].items()
         }
 
@@ -603,25 +601,22 @@ def register(
     sd_all = [solution.intrinsics_sigma(k) for k in range(4)]
     cams = []
     for k in range(4):
-        mirrored = k > 0 and orientations[k - 1].mirrored
         used = [n for v, n in enumerate(names) if solution.inliers[k, v].any()]
         left_out = {names[v]: reason for (c, v), reason in solution.dropped_views.items() if c == k}
+        lost_corners = seen[k].sum(axis=1) - solution.inliers[k].sum(axis=1)
         rejected = {
-            names[v]: int(seen[k, v].sum() - solution.inliers[k, v].sum())
+            names[v]: int(lost_corners[v])
             for v in range(len(names))
-            if seen[k, v].any()
-            and (k, v) not in solution.dropped_views
-            and not solution.inliers[k, v].all()
-            and seen[k, v].sum() > solution.inliers[k, v].sum()
+            if lost_corners[v] > 0 and (k, v) not in solution.dropped_views
         }
         err = solution.residuals_px[k]
         per_view = {
-            names[v]: float(np.sqrt(np.mean(np.sum(err[v][solution.inliers[k, v]] ** 2, axis=-1))))
+            names[v]: joint.rms_px(err[v][solution.inliers[k, v]])
             for v in range(len(names))
             if solution.inliers[k, v].any()
         }
         inl = solution.inliers[k]
-        rms = float(np.sqrt(np.mean(np.sum(err[inl] ** 2, axis=-1)))) if inl.any() else float("nan")
+        rms = joint.rms_px(err[inl]) if inl.any() else float("nan")
         cams.append(
             CameraCalibration(
                 solution.camera_matrix(k),
@@ -631,7 +626,7 @@ def register(
                 sd_all[k],
                 used,
                 left_out,
-                mirrored,
+                k > 0 and orientations[k - 1].mirrored,
                 rejected,
             )
         )
@@ -659,7 +654,7 @@ def register(
                 f"CCD 1 and CCD {k + 1} share {int(shared.sum())} valid views; at least {MIN_VIEWS} needed"
             )
         both = np.concatenate([solution.residuals_px[c][shared][solution.inliers[c][shared]] for c in (0, k)])
-        stereo_rms.append(float(np.sqrt(np.mean(np.sum(both**2, axis=-1)))))
+        stereo_rms.append(joint.rms_px(both))
     reg = Registration(
         size,
         board,

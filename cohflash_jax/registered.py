@@ -23,6 +23,13 @@ BAND_MARGIN_ROWS = 2
 EDGE_TOLERANCE_PX = 1e-3
 
 
+def inside_image(map_x, map_y, width: int, height: int) -> np.ndarray:
+    """Where a map lands inside a width × height image (pixel centres at integers), to
+    `EDGE_TOLERANCE_PX`: the pixels another CCD sees."""
+    tol = EDGE_TOLERANCE_PX
+    return (map_x >= -tol) & (map_x <= width - 1 + tol) & (map_y >= -tol) & (map_y <= height - 1 + tol)
+
+
 @jax.jit
 def _bilinear(band, index, weight):
     """band (N, B·W), index/weight (P, 4) → (N, P) float32."""
@@ -56,8 +63,7 @@ class RegisteredTiles:
         y = np.zeros((self.rows, self.w))
         x[: r1 - r0], y[: r1 - r0] = mx[r0:r1], my[r0:r1]
         start = r0 - self.margin
-        tol = EDGE_TOLERANCE_PX
-        outside = (x < -tol) | (x > self.w - 1 + tol) | (y < -tol) | (y > self.h - 1 + tol)
+        outside = ~inside_image(x, y, self.w, self.h)
         x, y = np.clip(x, 0, self.w - 1), np.clip(y, 0, self.h - 1)
         x0 = np.minimum(np.floor(x), self.w - 2).astype(np.int64)
         y0 = np.minimum(np.floor(y), self.h - 2).astype(np.int64)

@@ -7,7 +7,6 @@ against the ML fit (a row of the accuracy-versus-time table).
 from __future__ import annotations
 
 import time
-import warnings
 from pathlib import Path
 
 import jax
@@ -17,7 +16,7 @@ import cohflash_jax as cf
 from cohflash_experiments import study_parser
 from cohflash_jax.fileio import write_csv
 from cohflash_jax.reconstruct import ReconstructOptions, build_plan, process_tile
-from cohflash_jax.uncertainty import pixel_data, sample_pixel
+from cohflash_jax.uncertainty import sample_pixels
 
 NOISE = ("shot_noise", "read_noise", "dark_current", "quantization")
 
@@ -35,34 +34,21 @@ def run(out: Path, pixels: int, reflectance: float, seed: int):
     t0 = time.perf_counter()
     jax.block_until_ready(process_tile(plan, x, None))
     ml_per_pixel = (time.perf_counter() - t0) / x.shape[-1]
-    data = pixel_data(plan, x, options.window_bins)
-    rng = np.random.default_rng(seed)
-    rows = []
     t0 = time.perf_counter()
-    for p in range(x.shape[-1]):
-        d = jax.tree_util.tree_map(lambda a, p=p: a[p], data)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            post = sample_pixel(
-                plan.model,
-                d,
-                ambiguity_m=plan.geometry.ambiguity_m,
-                bin_depth_m=plan.geometry.bin_depth_m,
-                ripple_m=plan.geometry.ripple_m,
-                rng=rng,
-            )
-        rows.append(
-            {
-                "pixel": p,
-                "covered68": post.covers(30.5, 68),
-                "covered95": post.covers(30.5, 95),
-                "half68_over_crlb": (post.interval68_m[1] - post.interval68_m[0]) / 2 / post.crlb_m,
-                "converged": post.converged,
-                "multimodal": post.multimodal,
-                "steps": post.steps,
-                "tau": post.autocorr_steps,
-            }
-        )
+    posts = sample_pixels(inst, frames, rng=np.random.default_rng(seed))
+    rows = [
+        {
+            "pixel": p,
+            "covered68": post.covers(30.5, 68),
+            "covered95": post.covers(30.5, 95),
+            "half68_over_crlb": (post.interval68_m[1] - post.interval68_m[0]) / 2 / post.crlb_m,
+            "converged": post.converged,
+            "multimodal": post.multimodal,
+            "steps": post.steps,
+            "tau": post.autocorr_steps,
+        }
+        for p, post in enumerate(posts)
+    ]
     seconds = (time.perf_counter() - t0) / len(rows)
     write_csv(out / "coverage.csv", rows)
     c68 = np.mean([r["covered68"] for r in rows])
