@@ -137,6 +137,7 @@ def run(args, folder: Path):
     print(
         f"\n{cpu_description()}; JAX {jax.__version__}, jaxlib {jaxlib.__version__}; Python {platform.python_version()}"
     )
+    print(f"JAX device: {jax.devices()[0].device_kind} ({jax.default_backend()})")
     print(f"capture {capture}; {args.rounds} interleaved rounds, medians; whole processes")
     print(f"{'what':48s} {'seconds':>8s} {'× floor':>8s} {'NumPy ÷ it':>10s}")
     for name, values in rows.items():
