@@ -137,9 +137,10 @@ def posterior_rows(frames, inst, truth_m: np.ndarray, pixels: int, crlb_m: float
     }
 
 
-def run(out: Path, size: int, frame_counts, posterior_pixels: int, process: bool) -> None:
+def run(out: Path, size: int, frame_counts, posterior_pixels: int, process: bool, methods=None) -> None:
+    """The study, written to `out`; `methods`: the estimators (default: every one)."""
     out.mkdir(parents=True, exist_ok=True)
-    methods = list(METHODS)
+    methods = list(methods or METHODS)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

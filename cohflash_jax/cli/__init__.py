@@ -9,15 +9,15 @@ from pathlib import Path
 
 from ..fileio import OutputSet
 from ..runtime import enable_compilation_cache, use_cpu_streams
-from . import calibrate, demo, design, info, reconstruct, scenes, simulate, stream, sweep, uncertainty
+from . import calibrate, demo, design, info, paper_report, reconstruct, scenes, simulate, stream, sweep, uncertainty
 from .common import check_output_paths
 from .reconstruct import run_reconstruct, summary
 
-COMMANDS = (demo, simulate, reconstruct, stream, calibrate, sweep, design, uncertainty, info, scenes)
+COMMANDS = (demo, simulate, reconstruct, stream, calibrate, sweep, design, uncertainty, info, scenes, paper_report)
 # commands whose files are committed as they go: the sweep's checkpoint after every chunk of
-# points, the demo's capture (which it then reads), a stream's depth file per capture; every
-# other command's outputs form one set
-WRITES_AS_IT_GOES = ("sweep", "demo", "stream")
+# points, the demo's capture (which it then reads), a stream's depth file per capture, the report's
+# figures and tables section by section; every other command's outputs form one set
+WRITES_AS_IT_GOES = ("sweep", "demo", "stream", "report")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -110,7 +110,7 @@ def check_output_paths(args) -> None:
     """Before any work: every output's folder exists, no output is an input of the command
     (`reconstruct x.h5 --out x.h5` replaced the capture with its depth map) and no two
     outputs are one file."""
-    if args.command == "demo":  # its --out is a folder it makes
+    if args.command in ("demo", "report"):  # their --out is a folder they make
         return
     outputs = [(name, getattr(args, name)) for name in OUTPUT_ARGUMENTS if getattr(args, name, None)]
     if getattr(args, "chains", False):
