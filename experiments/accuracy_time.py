@@ -254,7 +254,7 @@ def write_report(out: Path, rows: list[dict], size: int) -> None:
     (out / "accuracy_time.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
     fig, axes = plt.subplots(1, 2, figsize=(13, 5), dpi=90)
-    markers = dict(zip([*METHODS, "emcee posterior"], "os^Dvx"))
+    markers = dict(zip([*METHODS, "emcee posterior"], "os^Dv<>p*hx"))
     colours = dict(zip(sorted({r["frames"] for r in rows}), ("tab:blue", "tab:orange", "tab:green")))
     for r in rows:
         m, c = markers.get(r["method"], "."), colours[r["frames"]]

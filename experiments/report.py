@@ -284,11 +284,12 @@ def figure_3(out: Path, scale: Scale, seed: int) -> dict:
 def gaussian_fit_sigma(values: np.ndarray, bins: int = 40) -> tuple[float, float, np.ndarray, np.ndarray]:
     """The paper's precision: a Gaussian fitted by least squares to the depth histogram →
     (mean, σ, bin centres, counts). Fitted as a parabola to the log counts of the populated
-    bins, weighted by the counts (the least-squares fit of a Gaussian to its own histogram)."""
+    bins, weighted by the counts: a count's error δc is c·δlog c, so these weights make it the
+    least-squares fit to the counts themselves, near the fit."""
     counts, edges = np.histogram(values, bins=bins)
     centres = 0.5 * (edges[1:] + edges[:-1])
     keep = counts > 0
-    a, b, _ = np.polyfit(centres[keep], np.log(counts[keep]), 2, w=np.sqrt(counts[keep]))
+    a, b, _ = np.polyfit(centres[keep], np.log(counts[keep]), 2, w=counts[keep])
     if a >= 0:  # no peak: fall back to the sample moments
         return float(np.mean(values)), float(np.std(values)), centres, counts
     return float(-b / (2 * a)), float(math.sqrt(-1 / (2 * a))), centres, counts

@@ -9,11 +9,15 @@ attribute and the reconstruction follow.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 
 from .base import AbstractDepthEstimator, EstimatorSetup
 from .candan import CandanPeak
+from .frequency_ml import FrequencyOnlyML
+from .padded import ZeroPaddedPeak
 from .peak import DFTPeak, InterpolatedPeak
+from .quinn import QuinnPeak
 from .table import TableML, table_fits
 from .time_domain import TimeDomainML
 from .window_ml import WindowML
@@ -40,7 +44,13 @@ class Method:
 METHODS: dict[str, Method] = {
     "dft": Method(DFTPeak.build, "depth of the strongest DFT bin (periodogram depth on a non-uniform schedule)"),
     "interp": Method(InterpolatedPeak.build, "the DFT peak interpolated between bins"),
+    "dft-pad4": Method(functools.partial(ZeroPaddedPeak.build, pad=4), "the peak of the DFT zero-padded ×4"),
+    "dft-pad16": Method(functools.partial(ZeroPaddedPeak.build, pad=16), "the peak of the DFT zero-padded ×16"),
     "candan": Method(CandanPeak.build, "the DFT peak interpolated from its complex neighbours (Jacobsen–Candan)"),
+    "quinn": Method(QuinnPeak.build, "the DFT peak's offset from its complex neighbours (Quinn's first estimator)"),
+    "ml-frequency": Method(
+        FrequencyOnlyML.build, "the periodogram's maximum over continuous frequency (frequency-only ML, phase free)"
+    ),
     "ml": Method(phase_locked_ml, "phase-locked maximum likelihood, σ at the CRLB"),
     "ml-time": Method(
         TimeDomainML.build,
