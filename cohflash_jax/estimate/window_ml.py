@@ -1,4 +1,4 @@
-"""Window ML: maximum-likelihood depth beyond the DFT bin (uniform sweeps), with optimistix.
+"""Window ML: maximum-likelihood depth beyond the DFT bin (uniform sweeps).
 
 The phase-locked model (`window_model`) is fitted on the W ≈ 17 bins around each pixel's
 peak: for a tone in white noise that gives the precision of the full time-domain fit from
