@@ -18,7 +18,7 @@ demo: $(STAMP)
 	$(VENV)/bin/cohflash demo --out out/demo
 
 test: lint
-	$(PY) -m pytest -q -n 2 --dist load
+	$(PY) -m pytest -q -n 2 --dist loadgroup
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -16,6 +16,9 @@ from cohflash_jax.fisher import depth_crlb_m
 
 from .closed_forms import closed_form_noise_and_amplitude, crlb_frequency_only_m, crlb_phase_locked_m
 
+# its module fixtures are costly: every test of the module on one xdist worker (make test: --dist loadgroup)
+pytestmark = pytest.mark.xdist_group("test_design")
+
 
 def test_autodiff_fisher_equals_closed_form(paper_instrument):
     """Single tone (no sidebands), paper link budget: the 4-port autodiff Fisher gives the

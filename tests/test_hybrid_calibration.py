@@ -14,6 +14,9 @@ from cohflash_jax.cli import main
 from cohflash_jax.hybrid_fit import calibrate_hybrid
 from cohflash_jax.simulate import simulate_to_file
 
+# its module fixtures are costly: every test of the module on one xdist worker (make test: --dist loadgroup)
+pytestmark = pytest.mark.xdist_group("test_hybrid_calibration")
+
 C = cf.SPEED_OF_LIGHT_M_PER_S
 PATH_OFFSET_M = 1.9  # the system path offset the issue asks for
 SIZE = 16

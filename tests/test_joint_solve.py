@@ -9,6 +9,9 @@ import pytest
 from cohflash_calibration import joint
 from cohflash_calibration.board import Board
 
+# its module fixtures are costly: every test of the module on one xdist worker (make test: --dist loadgroup)
+pytestmark = pytest.mark.xdist_group("test_joint_solve")
+
 BOARD = Board(9, 6, 25.0)
 OBJ = BOARD.object_points().astype(np.float64)
 LAYOUT = joint.Layout(4, 10)

@@ -20,6 +20,9 @@ from cohflash_calibration.registration import (
 from cohflash_calibration.synthetic import board_poses, default_rig, write_rig_views
 from cohflash_jax.cli import main
 
+# its module fixtures are costly: every test of the module on one xdist worker (make test: --dist loadgroup)
+pytestmark = pytest.mark.xdist_group("test_registration")
+
 BOARD = Board(9, 6, 25.0)
 
 

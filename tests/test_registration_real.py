@@ -25,6 +25,9 @@ from cohflash_jax.cli import main
 
 from .independent_writer import Writer
 
+# its module fixtures are costly: every test of the module on one xdist worker (make test: --dist loadgroup)
+pytestmark = pytest.mark.xdist_group("test_registration_real")
+
 DATA = Path(__file__).parent / "data" / "opencv_stereo"
 BOARD = Board(9, 6, 25.0)  # the sample's squares are about an inch; the size only scales T
 
