@@ -396,7 +396,7 @@ def designed_instrument(frames: int, schedule: str, problem_frames: int) -> tupl
     frames/s under the acquisition study's photon budget (the same power limit, exposure up to
     the frame period) and an unambiguous range of `DESIGN_RANGE_M` → (instrument, its CRLB in m)."""
     from cohflash_jax.design.optimise import frame_cap, solve_for_n
-    from cohflash_jax.design.parameters import design_instrument
+    from cohflash_jax.design.parameters import variables_instrument
     from cohflash_jax.design.problem import DesignProblem
 
     problem = DesignProblem(
@@ -409,19 +409,8 @@ def designed_instrument(frames: int, schedule: str, problem_frames: int) -> tupl
         max_frames=problem_frames,  # one compiled search for every frame count
     )
     _, ev = solve_for_n(frames, frame_cap(problem), problem)
-    v = ev.variables
-    inst = design_instrument(
-        start_hz=v["start_hz"],
-        step_hz=v["step_hz"],
-        num_steps=frames,
-        probe_power_w=v["probe_power_w"],
-        exposure_s=v["exposure_s"],
-        modulation_index=v["modulation_index"],
-        bias_rad=v["bias_rad"],
-        frame_rate_hz=ACQUISITION_RATE_HZ,
-        frequencies_hz=np.asarray(ev.frequencies_hz, np.float64),
-    )
-    return inst, float(ev.crlb_m)
+    frequencies = np.asarray(ev.frequencies_hz, np.float64)
+    return variables_instrument(ev.variables, frames, frequencies, ACQUISITION_RATE_HZ), float(ev.crlb_m)
 
 
 def monte_carlo_precision(inst, depth_m, effects, shape, seed, range_falloff: bool) -> tuple[float, float]:

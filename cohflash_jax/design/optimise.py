@@ -27,7 +27,7 @@ from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import SENSOR_NOISE, depth_crlb_m
 from ..instrument import Instrument
 from ..progress import progress_bar
-from .parameters import design_instrument
+from .parameters import variables_instrument
 from .problem import DesignProblem, decode, schedule
 
 # The ML fit ranks every likelihood ripple within ±1 DFT bin of the coarse estimate, so what
@@ -75,16 +75,7 @@ def evaluate(z, n, n_cap: int, problem: DesignProblem) -> Evaluation:
     v = decode(z, n, problem)
     f = schedule(v, n, n_cap)
     mask = (jnp.arange(n_cap) < n).astype(jnp.float64)
-    inst = design_instrument(
-        start_hz=v["start_hz"],
-        step_hz=v["step_hz"],
-        num_steps=n_cap,
-        probe_power_w=v["probe_power_w"],
-        exposure_s=v["exposure_s"],
-        modulation_index=v["modulation_index"],
-        bias_rad=v["bias_rad"],
-        frequencies_hz=f,
-    )
+    inst = variables_instrument(v, n_cap, frequencies_hz=f)
     crlb = lambda only: depth_crlb_m(
         inst, problem.distance_m, problem.reflectance, frequency_only=only, frame_weights=mask
     )

@@ -119,6 +119,23 @@ def design_instrument(
     )
 
 
+def variables_instrument(variables: dict, num_steps: int, frequencies_hz=None, frame_rate_hz: float = 150.0):
+    """The instrument of decoded design variables (`problem.decode`'s start_hz, step_hz,
+    probe_power_w, exposure_s, modulation_index, bias_rad; traced or concrete)."""
+    v = variables
+    return design_instrument(
+        start_hz=v["start_hz"],
+        step_hz=v["step_hz"],
+        num_steps=num_steps,
+        probe_power_w=v["probe_power_w"],
+        exposure_s=v["exposure_s"],
+        modulation_index=v["modulation_index"],
+        bias_rad=v["bias_rad"],
+        frame_rate_hz=frame_rate_hz,
+        frequencies_hz=frequencies_hz,
+    )
+
+
 def point_instrument(point: dict, frequencies_hz=None) -> Instrument:
     """The instrument of a completed design point (paper units), optionally with its own schedule."""
     si = to_si(complete_point(point))

@@ -17,7 +17,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup
-from .peak import MIRROR_EDGE_BINS, peak_estimate, peak_sigma_m
+from .peak import MIRROR_EDGE_BINS, peak_estimate, peak_neighbours, peak_sigma_m
 
 
 class CandanPeak(AbstractDepthEstimator):
@@ -43,10 +43,8 @@ class CandanPeak(AbstractDepthEstimator):
         if spec is None:
             depth = stage.depth(coarse, interpolate=True)
         else:
-            n, k_count = sequence.shape[0], spec.shape[-1]
-            peak = jnp.clip(coarse.peak, 1, k_count - 2)
-            take = lambda idx: jnp.take_along_axis(spec, idx[:, None], axis=-1)[:, 0].astype(jnp.complex128)
-            a, b, c = take(peak - 1), take(peak), take(peak + 1)
+            n = sequence.shape[0]
+            a, b, c, peak = peak_neighbours(spec, coarse.peak)
             den = 2 * b - a - c
             jacobsen = jnp.real((a - c) / jnp.where(jnp.abs(den) > 0, den, 1.0))
             delta = jnp.clip(jacobsen * math.tan(math.pi / n) / (math.pi / n), -0.5, 0.5)

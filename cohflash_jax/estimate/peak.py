@@ -44,6 +44,14 @@ def read_out(stage, coarse, noise_var, interpolate: bool, noise_factor: float, b
     )
 
 
+def peak_neighbours(spec, peak):
+    """The complex bins below, at and above each pixel's peak (float64 complex), the peak
+    moved off the spectrum's ends so that both neighbours exist → (below, centre, above, peak)."""
+    peak = jnp.clip(peak, 1, spec.shape[-1] - 2)
+    take = lambda idx: jnp.take_along_axis(spec, idx[:, None], axis=-1)[:, 0].astype(jnp.complex128)
+    return take(peak - 1), take(peak), take(peak + 1), peak
+
+
 def peak_estimate(depth, sigma, amplitude) -> DepthEstimate:
     finite = jnp.isfinite(depth)
     return DepthEstimate(depth, amplitude, sigma, depth, jnp.ones_like(finite), finite, jnp.full(depth.shape, -1.0))

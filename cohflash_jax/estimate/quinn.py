@@ -16,7 +16,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup
-from .peak import MIRROR_EDGE_BINS, peak_estimate, peak_sigma_m
+from .peak import MIRROR_EDGE_BINS, peak_estimate, peak_neighbours, peak_sigma_m
 
 
 class QuinnPeak(AbstractDepthEstimator):
@@ -42,10 +42,8 @@ class QuinnPeak(AbstractDepthEstimator):
         if spec is None:
             depth = stage.depth(coarse, interpolate=True)
         else:
-            n, k_count = sequence.shape[0], spec.shape[-1]
-            peak = jnp.clip(coarse.peak, 1, k_count - 2)
-            take = lambda idx: jnp.take_along_axis(spec, idx[:, None], axis=-1)[:, 0].astype(jnp.complex128)
-            below, centre, above = take(peak - 1), take(peak), take(peak + 1)
+            n = sequence.shape[0]
+            below, centre, above, peak = peak_neighbours(spec, coarse.peak)
             safe = jnp.where(jnp.abs(centre) > 0, centre, 1.0)
             alpha1, alpha2 = jnp.real(below / safe), jnp.real(above / safe)
             delta1, delta2 = alpha1 / (1 - alpha1), -alpha2 / (1 - alpha2)
