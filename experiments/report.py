@@ -697,13 +697,9 @@ def run(out: Path, quick: bool = False, seed: int = 0) -> Path:
     return report
 
 
-def add_arguments(p) -> None:
-    p.add_argument("--out", type=Path, default=Path("report"), help="output folder")
-    p.add_argument("--quick", action="store_true", help="small captures: every section, in well under a minute")
-    p.add_argument("--seed", type=int, default=0, help="seed of every simulated capture")
-
-
 def main():
+    from cohflash_jax.cli.paper_report import add_arguments
+
     p = study_parser(__doc__)
     add_arguments(p)
     a = p.parse_args()

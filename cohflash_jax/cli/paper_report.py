@@ -1,7 +1,17 @@
 """`cohflash report`: the accuracy–time study and the paper's figures in one report
-(`cohflash_experiments.report`)."""
+(`cohflash_experiments.report`, imported only when the command runs: it pulls in emcee and
+SciPy, half a second that no other command should pay)."""
 
 from __future__ import annotations
+
+from pathlib import Path
+
+
+def add_arguments(p) -> None:
+    """The report's options (shared with `python -m cohflash_experiments.report`)."""
+    p.add_argument("--out", type=Path, default=Path("report"), help="output folder")
+    p.add_argument("--quick", action="store_true", help="small captures: every section, in about a minute")
+    p.add_argument("--seed", type=int, default=0, help="seed of every simulated capture")
 
 
 def add_parser(sub) -> None:
@@ -14,8 +24,6 @@ def add_parser(sub) -> None:
         "differ; the provenance. The full run takes tens of minutes; --quick runs every section on small "
         "captures in under a minute.",
     )
-    from cohflash_experiments.report import add_arguments
-
     add_arguments(p)
     p.set_defaults(func=run)
 
