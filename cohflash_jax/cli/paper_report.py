@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .common import HelpFormatter
+
 
 def add_arguments(p) -> None:
     """The report's options (shared with `python -m cohflash_experiments.report`)."""
@@ -22,7 +24,8 @@ def add_parser(sub) -> None:
         "figures and CSV tables: every estimator's precision, reliability and time; precision against "
         "acquisition time; the paper's figures; the paper's numbers beside ours with the reasons they "
         "differ; the provenance. The full run takes tens of minutes; --quick runs every section on small "
-        "captures in under a minute.",
+        "captures in about a minute.",
+        formatter_class=HelpFormatter,
     )
     add_arguments(p)
     p.set_defaults(func=run)
