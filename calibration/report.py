@@ -54,11 +54,11 @@ def verdict(reg: Registration) -> str:
 
 def save_report(path, reg: Registration) -> Path:
     """The report figure (PNG)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.colors as mcolors
-    import matplotlib.pyplot as plt
+
+    from cohflash_jax.fileio import headless_pyplot
+
+    plt = headless_pyplot()
 
     from cohflash_jax.fileio import save_figure
 

@@ -142,6 +142,17 @@ def read_json(path, what: str, error=ValueError) -> dict:
         raise error(f"{path}: not a {what} JSON file (binary content; an HDF5 file given in its place?)") from None
 
 
+def headless_pyplot():
+    """matplotlib's pyplot on the Agg backend (files, no display), imported when first needed:
+    matplotlib costs ~0.3 s to import, which a run that draws nothing should not pay."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def save_figure(fig, path) -> Path:
     """Save a matplotlib figure as PNG atomically and close it."""
     import matplotlib.pyplot as plt

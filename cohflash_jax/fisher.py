@@ -151,6 +151,13 @@ def crlb_phase_locked_m(frequencies_hz, tone_amplitude, noise_sigma) -> float:
     return float(phase_locked_sigma_m(np.sum((2 * np.pi * f) ** 2), tone_amplitude, noise_sigma**2))
 
 
+def pixel_crlb_phase_locked_m(instrument: Instrument, distance_m: float, reflectance: float) -> float:
+    """`crlb_phase_locked_m` of a pixel of a target at `distance_m` with `reflectance`, its
+    tone amplitude and noise from `iq_noise_and_tone_amplitude` (sensor noise, range falloff)."""
+    noise_sigma, tone_amplitude = iq_noise_and_tone_amplitude(instrument, distance_m, reflectance)
+    return crlb_phase_locked_m(instrument.sweep.frequencies_hz, tone_amplitude, noise_sigma)
+
+
 def crlb_frequency_only_m(num_frames: int, step_hz: float, tone_amplitude, noise_sigma, order: int = 1):
     """Closed-form CRLB (m) of depth from the tone's frequency alone on a uniform sweep (real
     sinusoid, unknown amplitude and phase; Kay, Example 3.14): var(ω) = 24σ²/(a²·N(N²−1)),

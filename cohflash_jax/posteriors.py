@@ -153,12 +153,10 @@ def write_posteriors(path, results, meta: dict):
 def plot_posterior(path, post: Posterior, title: str = ""):
     """Marginal of depth with the CRLB Gaussian over it, beside a corner plot of the parameters."""
     import corner
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .fileio import headless_pyplot, save_figure
 
-    from .fileio import save_figure
+    plt = headless_pyplot()
 
     fig = plt.figure(figsize=(13, 5.5), dpi=100)
     ax = fig.add_axes([0.06, 0.12, 0.36, 0.78])

@@ -83,10 +83,9 @@ def save_preview_png(
     """Colour-mapped depth in mm relative to a reference (default: median of valid pixels),
     colour bar in mm, invalid pixels grey. `range_mm` fixes the colour limits (default: 1st
     to 99th percentile); values outside saturate, as the colour bar's arrows show."""
-    import matplotlib
+    from .fileio import headless_pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = headless_pyplot()
 
     valid = np.asarray(valid, bool)
     depth = np.asarray(depth_m, np.float64)

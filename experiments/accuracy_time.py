@@ -42,7 +42,7 @@ from cohflash_experiments import study_parser
 from cohflash_jax.constants import SPEED_OF_LIGHT_M_PER_S as C
 from cohflash_jax.estimate import METHODS
 from cohflash_jax.fileio import save_figure, write_csv
-from cohflash_jax.fisher import crlb_phase_locked_m, iq_noise_and_tone_amplitude
+from cohflash_jax.fisher import pixel_crlb_phase_locked_m
 from cohflash_jax.reconstruct import (
     DEFAULT_SNR_THRESHOLD_DB,
     ReconstructOptions,
@@ -147,8 +147,7 @@ def run(out: Path, size: int, frame_counts, posterior_pixels: int, process: bool
         for n in frame_counts:
             for level, level_db in LEVELS_DB.items():
                 inst, threshold, snr_db = calibrated_instrument(n, level_db)
-                sigma, amp = iq_noise_and_tone_amplitude(inst, DISTANCE_M, REFLECTANCE)
-                crlb = crlb_phase_locked_m(inst.sweep.frequencies_hz, amp, sigma)
+                crlb = pixel_crlb_phase_locked_m(inst, DISTANCE_M, REFLECTANCE)
                 bin_m = C / (2 * n * inst.sweep.step_hz)
                 # depths spread over two bins, so a grid read-out's quantisation is sampled, not one offset
                 truth = DISTANCE_M + np.random.default_rng(n).uniform(-bin_m, bin_m, (size, size))
@@ -222,10 +221,9 @@ def run(out: Path, size: int, frame_counts, posterior_pixels: int, process: bool
 
 
 def write_report(out: Path, rows: list[dict], size: int) -> None:
-    import matplotlib
+    from cohflash_jax.fileio import headless_pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = headless_pyplot()
 
     fmt = lambda v, spec: "" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v, spec)
     md = [

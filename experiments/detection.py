@@ -136,10 +136,9 @@ def run(out: Path, pixels: int, quick: bool):
             )
     write_csv(out / "false_alarm.csv", fa)
     write_csv(out / "detection.csv", pd)
-    import matplotlib
+    from cohflash_jax.fileio import headless_pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = headless_pyplot()
 
     fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
     for name in dict.fromkeys(r["schedule"] for r in pd):

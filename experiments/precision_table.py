@@ -100,10 +100,9 @@ def run(out: Path, seeds: int, size: int = 16):
             }
         )
     write_csv(out / "threshold.csv", trows)
-    import matplotlib
+    from cohflash_jax.fileio import headless_pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = headless_pyplot()
 
     fig, ax = plt.subplots(figsize=(6.4, 4), dpi=110)
     x = [r["median_snr_db"] for r in trows]

@@ -108,10 +108,9 @@ def run(out: Path, side: int, seeds: int, quick: bool):
         for r in rows
     ]
     (out / "pulls.md").write_text("\n".join(md) + "\n")
-    import matplotlib
+    from cohflash_jax.fileio import headless_pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = headless_pyplot()
 
     fig, axes = plt.subplots(1, len(METHODS), figsize=(14, 3.8), sharey=True, constrained_layout=True)
     for ax, m in zip(axes, METHODS):

@@ -180,10 +180,9 @@ def cross_validate(images: Path, work: Path, reg_all) -> tuple[dict, object]:
         "fraction |Δ|/σ_Δ < 2.5 (covered)": float(np.mean(ratio[inside] < 2.5)),
         "fraction |Δ|/σ_Δ < 2.5 (whole image)": float(np.mean(ratio < 2.5)),
     }
-    import matplotlib
+    from cohflash_jax.fileio import headless_pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = headless_pyplot()
 
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), dpi=90)
     im = axes[0].imshow(np.clip(ratio.reshape(24, 32), 0, 5), extent=(0, w, h, 0), cmap="RdYlGn_r", vmin=0, vmax=5)

@@ -41,8 +41,8 @@ from cohflash_experiments import accuracy_time, study_parser
 from cohflash_experiments.hard_cases import fold_into_window
 from cohflash_jax.constants import SPEED_OF_LIGHT_M_PER_S as C
 from cohflash_jax.estimate.iq import align_carrier_static, derotate, iq_from_frames
-from cohflash_jax.fileio import save_figure, write_csv
-from cohflash_jax.fisher import crlb_phase_locked_m, iq_noise_and_tone_amplitude
+from cohflash_jax.fileio import headless_pyplot, save_figure, write_csv
+from cohflash_jax.fisher import pixel_crlb_phase_locked_m
 from cohflash_jax.radiometry import PAPER_PROBE_POWER_W, LinkBudget
 from cohflash_jax.reconstruct import ReconstructOptions, build_plan, reconstruct_array
 from cohflash_jax.runtime import cpu_description
@@ -59,7 +59,6 @@ PAPER = {
     "frames_35_mm": 1.33,
     "frames_3500_mm": 0.35,
     "frames_3500_airflow_mm": 0.37,
-    "traffic_pixels": (320, 256),
 }
 PAPER_FRAME_COUNTS = (35, 88, 175, 350, 700, 1750, 3500)
 ACQUISITION_RATE_HZ = 350.0
@@ -108,23 +107,14 @@ QUICK = Scale(
 )
 
 
-def pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def aligned_sequence(inst: cf.Instrument, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def aligned_sequence(inst: cf.Instrument, frames: np.ndarray) -> np.ndarray:
     """I/Q of pixels (4, N, P) with the instrument's hybrid, rotated onto each pixel's carrier
-    axis → (r, q), each (N, P): the real tone the estimators see, and its quadrature."""
+    axis → r (N, P): the real tone the estimators see."""
     plan = build_plan(inst, ReconstructOptions(progress=False))
     i, q = iq_from_frames(jax.numpy.asarray(frames, jax.numpy.float32), plan.iq.weights, plan.iq.bias, None, None)
     _, _, phase = align_carrier_static(i, q)
-    r, qr = derotate(i, q, phase[None, :])
-    return np.asarray(r, np.float64), np.asarray(qr, np.float64)
+    r, _ = derotate(i, q, phase[None, :])
+    return np.asarray(r, np.float64)
 
 
 def beat_hz(inst: cf.Instrument, depth_m: float, order: int = 1) -> float:
@@ -155,7 +145,7 @@ def spectrum_peaks(
 def figure_2(out: Path, scale: Scale, seed: int) -> dict:
     """The staircase at 30.5 m: coherent processing of one pixel, a row across the steps, and
     the depth image."""
-    plt = pyplot()
+    plt = headless_pyplot()
     inst = cf.Instrument.paper(3000)
     scene = cf.staircase()
     h, w = scale.staircase_shape
@@ -167,12 +157,12 @@ def figure_2(out: Path, scale: Scale, seed: int) -> dict:
     # the selected pixel: on the highest step (largest height above the base) in the middle row
     col = int(np.argmin(np.where(truth[row] < truth[row].max() - 0.1, truth[row], np.inf)))
     pixel = frames[:, :, row, col].astype(np.float64)
-    r, _ = aligned_sequence(inst, frames[:, :, row : row + 1, col].reshape(4, -1, 1))
-    r = r[:, 0]
+    r = aligned_sequence(inst, frames[:, :, row : row + 1, col].reshape(4, -1, 1))[:, 0]
     rate = inst.frame_rate_hz
     t = np.arange(frames.shape[1]) / rate
     d_pix = float(depth[row, col])
-    freq, spec, f1, f2, second_ratio = spectrum_peaks(r, rate, beat_hz(inst, d_pix, 2))
+    second_predicted_hz = beat_hz(inst, d_pix, 2)
+    freq, spec, f1, f2, second_ratio = spectrum_peaks(r, rate, second_predicted_hz)
     fig, axes = plt.subplots(3, 3, figsize=(15, 12), dpi=80)
     for k in range(4):
         axes[0, 0].plot(t, pixel[k], lw=0.4, label=f"CCD {k + 1}")
@@ -189,7 +179,7 @@ def figure_2(out: Path, scale: Scale, seed: int) -> dict:
     axes[1, 0].plot(freq, spec, lw=0.6)
     for f, label, c in ((f1, "fundamental", "tab:red"), (f2, f"2nd harmonic ({second_ratio:.2f}×)", "tab:green")):
         axes[1, 0].axvline(f, color=c, ls="--", lw=0.8, label=f"{label} {f:.2f} Hz")
-    axes[1, 0].axvline(beat_hz(inst, d_pix, 2), color="k", ls=":", lw=0.8, label="2nd harmonic, aliased (predicted)")
+    axes[1, 0].axvline(second_predicted_hz, color="k", ls=":", lw=0.8, label="2nd harmonic, aliased (predicted)")
     axes[1, 0].set(title="(f) spectrum (Hann window)", xlabel="frequency (Hz)")
     axes[1, 0].legend(fontsize=7)
     axes[1, 1].axis("off")
@@ -245,7 +235,7 @@ def figure_2(out: Path, scale: Scale, seed: int) -> dict:
 # ------------------------------------------------------------------------------------ Fig. 3
 def figure_3(out: Path, scale: Scale, seed: int) -> dict:
     """The traffic scene (the paper's 150 Hz, 4 ms exposure, 3000 steps)."""
-    plt = pyplot()
+    plt = headless_pyplot()
     inst = cf.Instrument.paper(3000)
     h, w = scale.traffic_shape
     scene = cf.traffic()
@@ -311,14 +301,13 @@ def planar_precision(inst, distance_m: float, shape: tuple[int, int], speckle: b
     valid = res["valid"].astype(bool)
     d = res["depth_m"][valid]
     sigma_fit = gaussian_fit_sigma(d)[1] if d.size > 8 else float("nan")
-    noise, amplitude = iq_noise_and_tone_amplitude(inst, distance_m, 0.5)
     return {
         "distance_m": distance_m,
         "speckle": speckle,
         "valid_fraction": float(valid.mean()),
         "precision_mm": float(1e3 * np.std(d)) if d.size > 1 else float("nan"),
         "gaussian_fit_sigma_mm": 1e3 * sigma_fit,
-        "crlb_mm": 1e3 * crlb_phase_locked_m(inst.sweep.frequencies_hz, amplitude, noise),
+        "crlb_mm": 1e3 * pixel_crlb_phase_locked_m(inst, distance_m, 0.5),
         "depths": d,
     }
 
@@ -326,7 +315,7 @@ def planar_precision(inst, distance_m: float, shape: tuple[int, int], speckle: b
 def figure_4(out: Path, scale: Scale, seed: int) -> dict:
     """The planar target: histogram with its Gaussian fit at 30.5 m, precision against distance,
     speckle on and off."""
-    plt = pyplot()
+    plt = headless_pyplot()
     inst = cf.Instrument.paper(3000)
     rows = [
         planar_precision(inst, d, scale.planar_shape, speckle, seed + k)
@@ -350,10 +339,7 @@ def figure_4(out: Path, scale: Scale, seed: int) -> dict:
         )
     dist = np.array(scale.distances_m)
     fine = np.geomspace(dist.min(), dist.max(), 60)
-    crlb = [
-        1e3 * crlb_phase_locked_m(inst.sweep.frequencies_hz, *iq_noise_and_tone_amplitude(inst, d, 0.5)[::-1])
-        for d in fine
-    ]
+    crlb = [1e3 * pixel_crlb_phase_locked_m(inst, d, 0.5) for d in fine]
     axes[2].plot(fine, crlb, "b-", label="CRLB (phase-locked)")
     for speckle, style in ((False, "ko"), (True, "r^")):
         p = [at[(d, speckle)]["precision_mm"] for d in dist]
@@ -434,12 +420,11 @@ def acquisition(out: Path, scale: Scale, seed: int) -> list[dict]:
     """Precision against acquisition time: Monte Carlo (default options) beside the CRLB for
     the comb sweep at 30.5 m, static and with turbulence, and for the design tool's best
     uniform and warped (non-uniform) schedules at the same photon budget."""
-    plt = pyplot()
+    plt = headless_pyplot()
     rows = []
     for n in scale.frame_counts:
         inst = acquisition_instrument(n)
-        noise, amplitude = iq_noise_and_tone_amplitude(inst, 30.5, 0.5)
-        crlb = crlb_phase_locked_m(inst.sweep.frequencies_hz, amplitude, noise)
+        crlb = pixel_crlb_phase_locked_m(inst, 30.5, 0.5)
         for turbulence in (False, True):
             effects = NOISE + (("turbulence",) if turbulence else ())
             precision, valid = monte_carlo_precision(inst, 30.5, effects, scale.acquisition_shape, seed + n, True)

@@ -30,18 +30,17 @@ def plot_sweep(rows: list[dict], names: list[str], path) -> Path:
     """Heat map with precision contours (two axes) or precision against the swept parameter
     (one axis; against frames and acquisition time when it is num_steps), CRLB and Monte Carlo
     on the same axes."""
-    import matplotlib
+    from matplotlib.colors import LogNorm
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from ..fileio import headless_pyplot, save_figure
 
-    from ..fileio import save_figure
+    plt = headless_pyplot()
 
     crlb = np.array([float(r["crlb_mm"]) for r in rows])
     if len(names) >= 2:
         xs, ys, grid, at = sweep_heat_map(rows, names)
         fig, ax = plt.subplots(figsize=(7, 5.5), constrained_layout=True)
-        mesh = ax.pcolormesh(xs, ys, grid, shading="nearest", norm=matplotlib.colors.LogNorm(), cmap="viridis")
+        mesh = ax.pcolormesh(xs, ys, grid, shading="nearest", norm=LogNorm(), cmap="viridis")
         fig.colorbar(mesh, ax=ax, label="CRLB of depth (mm)")
         levels = np.array([0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10])
         levels = levels[(levels > np.nanmin(grid)) & (levels < np.nanmax(grid))]

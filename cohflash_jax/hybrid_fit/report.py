@@ -8,12 +8,9 @@ import numpy as np
 def save_hybrid_report(path, result: dict):
     """Report figure: I/Q of the strongest pixel with the nominal and the calibrated hybrid,
     the carrier drift, and the fitted sideband weights over the sweep."""
-    import matplotlib
+    from ..fileio import headless_pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..fileio import save_figure
+    plt = headless_pyplot()
 
     diag = result["diagnostics"]
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.5), constrained_layout=True)
