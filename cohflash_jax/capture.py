@@ -1,6 +1,7 @@
-"""Capture file format v1 (HDF5; docs/formats.md): this module owns it end to end — the
-header an instrument writes (`capture_attributes`), atomic writing (`write_capture`), and
-validated tiled reading with the instrument it describes (`Capture`, `Capture.instrument`).
+"""Capture file format v1 (HDF5, or the same layout as a Zarr store; docs/formats.md): this
+module owns it end to end — the header an instrument writes (`capture_attributes`), atomic
+writing (`write_capture`), and validated tiled reading of either store with the instrument it
+describes (`Capture`, `Capture.instrument`). Zarr writing and conversion: `capture_zarr`.
 
 Root attributes: format = "cohflash-capture", format_version = 1, exposure_s,
 frame_rate_hz, wavelength_m. Optional root attributes that cohflash writes and reads
@@ -89,8 +90,10 @@ def write_capture(
     truth: dict | None = None,
     frames_per_chunk: int = 64,
     progress: bool = True,
+    by_rows: bool = False,
 ) -> Path:
-    """Write a v1 capture atomically from an iterator of (m0, m1, frames[4, m1−m0, H, W])."""
+    """Write a v1 capture atomically from an iterator of (m0, m1, frames[4, m1−m0, H, W]), or
+    with `by_rows` of (r0, r1, frames[4, N, r1−r0, W]) (bands of rows, all frames)."""
     path = Path(path)
     freqs = np.asarray(frequencies_hz, np.float64)
     n = freqs.size
@@ -113,16 +116,21 @@ def write_capture(
         f.create_dataset("hybrid_phases_rad", data=phases)
         if dark is not None:
             f.create_dataset("dark", data=np.asarray(dark, np.float32))
-        with progress_bar(total=n, unit="frame", desc=f"writing {path.name}", disable=not progress) as bar:
+        total, unit = (height, "row") if by_rows else (n, "frame")
+        with progress_bar(total=total, unit=unit, desc=f"writing {path.name}", disable=not progress) as bar:
             written = 0
             for m0, m1, block in chunks:
-                if block.shape != (4, m1 - m0, height, width):
-                    raise CaptureError(f"frame block {m0}:{m1} has shape {block.shape}")
-                frames[:, m0:m1] = block
+                expected = (4, n, m1 - m0, width) if by_rows else (4, m1 - m0, height, width)
+                if block.shape != expected:
+                    raise CaptureError(f"{unit} block {m0}:{m1} has shape {block.shape}, expected {expected}")
+                if by_rows:
+                    frames[:, :, m0:m1] = block
+                else:
+                    frames[:, m0:m1] = block
                 written += m1 - m0
                 bar.update(m1 - m0)
-        if written != n:
-            raise CaptureError(f"wrote {written} of {n} frames")
+        if written != total:
+            raise CaptureError(f"wrote {written} of {total} {unit}s")
         if truth is not None:
             g = f.create_group("truth")
             g.create_dataset("depth_m", data=np.asarray(truth["depth_m"], np.float32))
@@ -133,24 +141,29 @@ def write_capture(
 
 
 class Capture:
-    """A validated, open v1 capture. Reads pixel tiles without loading the whole file.
+    """A validated, open v1 capture, an HDF5 file or a Zarr store (`capture_zarr`: the same
+    attributes and arrays). Reads pixel tiles without loading the whole file.
 
     Use as a context manager. Raises CaptureError naming the problem on open."""
 
     def __init__(self, path):
         self.path = Path(path)
-        if self.path.is_dir():
-            raise CaptureError(f"{self.path} is a folder, not a capture file")
-        if not self.path.is_file():
-            raise CaptureError(f"capture file not found: {self.path}")
-        try:
-            self._file = h5py.File(self.path, "r")
-        except OSError as exc:
-            raise CaptureError(f"{self.path}: not a readable HDF5 file ({exc})") from None
+        self.store = "zarr" if self.path.is_dir() else "hdf5"
+        if self.store == "zarr":
+            from .capture_zarr import open_zarr_group
+
+            self._file = open_zarr_group(self.path, CaptureError)
+        else:
+            if not self.path.is_file():
+                raise CaptureError(f"capture file not found: {self.path}")
+            try:
+                self._file = h5py.File(self.path, "r")
+            except OSError as exc:
+                raise CaptureError(f"{self.path}: not a readable HDF5 file ({exc})") from None
         try:
             self._validate()
         except Exception:
-            self._file.close()
+            self.close()
             raise
 
     def _fail(self, msg):
@@ -178,8 +191,13 @@ class Capture:
             v = self._number_attr(k)
             if not (np.isfinite(v) and v > 0):
                 self._fail(f"attribute {k} must be a positive number, got {v}")
+        if self.store == "zarr" and f.attrs.get("complete") is not True:
+            self._fail(
+                "the Zarr capture is incomplete: its writers have not all finished "
+                "(`capture_zarr.finish_zarr_capture` marks it complete once every chunk is written)"
+            )
         for name in ("frames", "frequencies_hz", "hybrid_phases_rad"):
-            if name not in f or not isinstance(f[name], h5py.Dataset):
+            if name not in f or not hasattr(f[name], "shape"):
                 self._fail(f"dataset {name!r} is missing")
         frames = f["frames"]
         if frames.ndim != 4 or frames.shape[0] != 4:
@@ -233,7 +251,8 @@ class Capture:
 
     # -- metadata ---------------------------------------------------------------------------
     @property
-    def frames(self) -> h5py.Dataset:
+    def frames(self):
+        """The frames (4, N, H, W): an h5py dataset or a Zarr array (sliced alike)."""
         return self._file["frames"]
 
     @property
@@ -251,7 +270,9 @@ class Capture:
 
     @property
     def attrs(self) -> dict:
-        return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in self._file.attrs.items()}
+        """The root attributes: scalars as Python numbers, vectors as arrays (either store)."""
+        plain = lambda v: v.item() if isinstance(v, np.generic) else np.asarray(v) if isinstance(v, list) else v
+        return {k: plain(v) for k, v in self._file.attrs.items()}
 
     @property
     def dark(self) -> np.ndarray | None:
@@ -320,10 +341,14 @@ class Capture:
         """Frames of rows `rows` (all columns) read straight into the first rows of `out`
         (4, N, ≥h, W), a C-contiguous array of the file's dtype: no temporary array."""
         count = len(range(*rows.indices(self.shape[1])))
-        self.frames.read_direct(out, np.s_[:, :, rows, :], np.s_[:, :, :count, :])
+        if self.store == "zarr":
+            out[:, :, :count, :] = self.frames[:, :, rows, :]
+        else:
+            self.frames.read_direct(out, np.s_[:, :, rows, :], np.s_[:, :, :count, :])
 
     def close(self):
-        self._file.close()
+        if self.store == "hdf5":
+            self._file.close()
 
     def __enter__(self):
         return self

@@ -7,19 +7,27 @@ import contextlib
 import contextvars
 import glob
 import os
+import shutil
 from pathlib import Path
 
 
+def is_store_folder(path) -> bool:
+    """Whether `path` names a folder-shaped output (a Zarr store, `NAME.zarr`), which is
+    written and replaced whole like a file."""
+    return Path(path).suffix == ".zarr"
+
+
 def require_output_folders(*paths) -> None:
-    """Before any work: each output path (None skipped) is a file name in an existing folder
-    this process may write in (FileNotFoundError or PermissionError naming it otherwise)."""
+    """Before any work: each output path (None skipped) is a file name (or a Zarr store's
+    name) in an existing folder this process may write in (FileNotFoundError or
+    PermissionError naming it otherwise)."""
     for path in paths:
         if path is None:
             continue
         path = Path(path)
         if not path.parent.is_dir():
             raise FileNotFoundError(f"output folder does not exist: {path.parent}")
-        if path.is_dir():
+        if path.is_dir() and not is_store_folder(path):
             raise IsADirectoryError(f"output {path} is a folder: give a file name in it")
         if not os.access(path.parent, os.W_OK | os.X_OK):
             raise PermissionError(f"output folder {path.parent} is not writable (for {path.name})")
@@ -48,9 +56,9 @@ class OutputSet:
         if exc_type is None:
             with _interrupts_held():
                 for path, tmp in self._pending.items():
-                    os.replace(tmp, path)
+                    replace_path(tmp, path)
         for tmp in self._pending.values():
-            tmp.unlink(missing_ok=True)
+            remove_path(tmp)
 
 
 _ACTIVE_SET: contextvars.ContextVar[OutputSet | None] = contextvars.ContextVar("output_set", default=None)
@@ -72,6 +80,27 @@ def _interrupts_held():
         signal.signal(signal.SIGINT, previous)
 
 
+def remove_path(path: Path) -> None:
+    """Remove a file or a whole folder (a Zarr store); nothing where it does not exist."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def replace_path(tmp: Path, path: Path) -> None:
+    """Rename `tmp` onto `path`. A folder (a Zarr store) cannot be renamed onto a non-empty
+    one: the old one is moved aside first and removed after, so `path` is never half old."""
+    if tmp.is_dir() and path.is_dir():
+        aside = path.with_name(f".{path.name}.old-{os.getpid()}")
+        remove_path(aside)
+        os.replace(path, aside)
+        os.replace(tmp, path)
+        remove_path(aside)
+    else:
+        os.replace(tmp, path)
+
+
 def temporary_name(path: Path) -> Path:
     """The temporary file beside `path` this process writes before renaming: .NAME.tmp-PID."""
     return path.with_name(f".{path.name}.tmp-{os.getpid()}")
@@ -87,7 +116,7 @@ def remove_stale_temporaries(path) -> list[Path]:
         if not pid.isdigit() or int(pid) == os.getpid() or _alive(int(pid)):
             continue
         with contextlib.suppress(OSError):
-            tmp.unlink()
+            remove_path(tmp)
             removed.append(tmp)
     return removed
 
@@ -108,7 +137,8 @@ def atomic_path(path):
     end of the enclosing `OutputSet`, where there is one).
 
     On any exception the temporary file is removed and an existing `path` is untouched,
-    so an interrupted run never leaves a half-written file."""
+    so an interrupted run never leaves a half-written file. The temporary may be made a
+    folder (a Zarr store): it then replaces `path` whole."""
     path = Path(path)
     require_output_folders(path)
     remove_stale_temporaries(path)
@@ -118,13 +148,21 @@ def atomic_path(path):
     try:
         yield tmp
         if outputs is None:
-            os.replace(tmp, path)
+            replace_path(tmp, path)
         else:
             outputs.add(tmp, path)
             handed_on = True
     finally:
-        if not handed_on and tmp.exists():
-            tmp.unlink()
+        if not handed_on:
+            remove_path(tmp)
+
+
+def json_value(value):
+    """An HDF5 attribute's value (NumPy scalar or array, bytes) as a JSON value: Zarr
+    attributes are JSON."""
+    if isinstance(value, bytes):
+        return value.decode()
+    return value.tolist() if hasattr(value, "tolist") else value
 
 
 def read_json(path, what: str, error=ValueError) -> dict:

@@ -18,7 +18,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .fileio import atomic_path, save_figure
+from .fileio import atomic_path, is_store_folder, json_value, save_figure
 from .instrument import DEFAULT_FIELD_OF_VIEW_DEG
 from .status import Status
 
@@ -38,8 +38,11 @@ _DTYPES = {
 
 
 def write_depth(path, outputs: dict, meta: dict, provenance: dict) -> Path:
-    """depth.h5 from a reconstruction's outputs and meta data, with provenance, atomically."""
+    """depth.h5 from a reconstruction's outputs and meta data, with provenance, atomically; a
+    path NAME.zarr gets the same attributes and arrays as a Zarr store."""
     path = Path(path)
+    if is_store_folder(path):
+        return write_depth_zarr(path, outputs, meta, provenance)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = FORMAT_NAME
         f.attrs["format_version"] = FORMAT_VERSION
@@ -56,6 +59,28 @@ def write_depth(path, outputs: dict, meta: dict, provenance: dict) -> Path:
     return path
 
 
+def write_depth_zarr(path: Path, outputs: dict, meta: dict, provenance: dict) -> Path:
+    """The depth file's attributes and arrays as a Zarr store (chunks of 256 rows), atomically."""
+    import zarr
+
+    with atomic_path(path) as tmp:
+        group = zarr.open_group(tmp, mode="w")
+        group.attrs.update(
+            {
+                "format": FORMAT_NAME,
+                "format_version": FORMAT_VERSION,
+                **{k: json_value(v) for k, v in meta.items()},
+                "status_codes": Status.table_json(),
+                "provenance": json.dumps(provenance, default=str),
+            }
+        )
+        for name, dtype in _DTYPES.items():
+            if name in outputs:
+                values = stored_as(outputs[name], dtype)
+                group.create_array(name, data=values, chunks=(min(256, values.shape[0]), values.shape[1]))
+    return path
+
+
 def stored_as(values, dtype) -> np.ndarray:
     """`values` in the file's dtype; floats beyond its range are clipped to its largest finite
     value (a dead pixel's SNR over a zero noise estimate is finite in float64 but not in
@@ -68,7 +93,15 @@ def stored_as(values, dtype) -> np.ndarray:
 
 
 def read_depth(path) -> tuple[dict, dict]:
+    """A depth file's (or depth Zarr store's) arrays and attributes."""
     path = Path(path)
+    if path.is_dir() and (path / "zarr.json").is_file():
+        import zarr
+
+        group = zarr.open_group(path, mode="r")
+        if group.attrs.get("format") != FORMAT_NAME:
+            raise ValueError(f"{path}: not a cohflash depth store")
+        return {k: group[k][()] for k in group.array_keys()}, dict(group.attrs)
     if not path.is_file():
         raise FileNotFoundError(f"depth file not found: {path}")
     with h5py.File(path, "r") as f:

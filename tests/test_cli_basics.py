@@ -216,7 +216,7 @@ def test_an_interrupted_sweep_keeps_every_finished_monte_carlo_point(tmp_path, m
             raise KeyboardInterrupt
         return {"mc_precision_mm": 1.0, "mc_bias_mm": 0.0, "mc_valid_fraction": 1.0, "mc_trials": 4}
 
-    monkeypatch.setattr(grid, "_mc_worker", fake)
+    monkeypatch.setattr(grid, "monte_carlo_job", fake)
     axes = [("distance_m", np.array([10.0, 20.0, 30.0, 40.0]))]
     out = tmp_path / "s.csv"
     with pytest.raises(KeyboardInterrupt):

@@ -4,16 +4,43 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
 from ..fileio import OutputSet
 from ..runtime import enable_compilation_cache, use_cpu_streams
-from . import calibrate, demo, design, info, paper_report, reconstruct, scenes, simulate, stream, sweep, uncertainty
+from . import (
+    calibrate,
+    convert,
+    demo,
+    design,
+    info,
+    paper_report,
+    reconstruct,
+    scenes,
+    simulate,
+    stream,
+    sweep,
+    uncertainty,
+)
 from .common import check_output_paths
 from .reconstruct import run_reconstruct, summary
 
-COMMANDS = (demo, simulate, reconstruct, stream, calibrate, sweep, design, uncertainty, info, scenes, paper_report)
+COMMANDS = (
+    demo,
+    simulate,
+    convert,
+    reconstruct,
+    stream,
+    calibrate,
+    sweep,
+    design,
+    uncertainty,
+    info,
+    scenes,
+    paper_report,
+)
 # commands whose files are committed as they go: the sweep's checkpoint after every chunk of
 # points, the demo's capture (which it then reads), a stream's depth file per capture, the report's
 # figures and tables section by section; every other command's outputs form one set
@@ -37,6 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if getattr(args, "scheduler", None) == "processes":  # the GPUs' memory is the workers', not this process's
+        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     enable_compilation_cache()
     use_cpu_streams()
     try:

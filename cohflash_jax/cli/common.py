@@ -141,6 +141,8 @@ def file_record(path) -> dict:
     import hashlib
 
     path = Path(path)
+    if path.is_dir():  # a Zarr store: its metadata hashed, its size summed
+        return store_record(path)
     st = path.stat()
     digest = hashlib.sha256()
     with open(path, "rb") as fh:
@@ -159,6 +161,21 @@ def file_record(path) -> dict:
         "mtime": st.st_mtime,
         kind: digest.hexdigest(),
     }
+
+
+def store_record(path: Path) -> dict:
+    """A Zarr store an output depended on: its metadata documents hashed (every array's shape,
+    chunks and attributes), its size summed, its latest modification time."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    size, mtime = 0, 0.0
+    for item in sorted(p for p in path.rglob("*") if p.is_file()):
+        st = item.stat()
+        size, mtime = size + st.st_size, max(mtime, st.st_mtime)
+        if item.name == "zarr.json":
+            digest.update(str(item.relative_to(path)).encode() + item.read_bytes())
+    return {"path": str(path.resolve()), "size_bytes": size, "mtime": mtime, "sha256_metadata": digest.hexdigest()}
 
 
 def provenance(path: Path, options, applied: dict | None = None) -> dict:

@@ -18,7 +18,7 @@ def add_parser(sub) -> None:
         help="what a cohflash file holds: capture, depth, posterior, calibration, registration, design, sweep",
         formatter_class=HelpFormatter,
     )
-    i.add_argument("file", help="any file cohflash writes (.h5, .json, .csv)")
+    i.add_argument("file", help="any file cohflash writes (.h5, .json, .csv, .zarr)")
     i.set_defaults(func=run)
 
 
@@ -33,7 +33,7 @@ def describe(path) -> str:
     if not path.exists():
         raise FileNotFoundError(f"file not found: {path}")
     if path.is_dir():
-        raise ValueError(f"{path} is a folder: give a file")
+        return _describe_zarr(path)
     suffix = path.suffix.lower()
     if suffix in (".h5", ".hdf5"):
         return _describe_h5(path)
@@ -42,6 +42,18 @@ def describe(path) -> str:
     if suffix == ".csv":
         return _describe_sweep(path)
     raise ValueError(f"{path}: not a cohflash file (expected .h5, .json or .csv)")
+
+
+def _describe_zarr(path: Path) -> str:
+    """A Zarr store cohflash writes: a capture or a depth result."""
+    from ..capture_zarr import open_zarr_group
+
+    kind = open_zarr_group(path, ValueError).attrs.get("format")
+    if kind == "cohflash-capture":
+        return _describe_capture(path)
+    if kind == "cohflash-depth":
+        return _describe_depth(path)
+    raise ValueError(f"{path}: a Zarr store, but not a cohflash capture or depth result (format {kind!r})")
 
 
 def _describe_h5(path: Path) -> str:
@@ -74,9 +86,10 @@ def _describe_capture(path: Path) -> str:
         attrs = cap.attrs
         truth = cap.truth_names
         dtype = cap.frames.dtype
+        store = f"{cap.store} store, chunks {cap.frames.chunks}" if cap.store == "zarr" else "HDF5"
     uniform = np.allclose(np.diff(f), f[1] - f[0], rtol=1e-9, atol=1e-3) if n > 1 else True
     lines = [
-        f"{path}: cohflash capture, format v{attrs.get('format_version')}",
+        f"{path}: cohflash capture, format v{attrs.get('format_version')} ({store})",
         f"frames (4, {n}, {h}, {w}) {dtype}: {n} frequency steps, {h}×{w} pixels",
         f"band {f[0] / 1e9:.6g}–{f[-1] / 1e9:.6g} GHz, "
         + (f"uniform step {(f[1] - f[0]) / 1e6:.6g} MHz" if uniform else "non-uniform schedule")

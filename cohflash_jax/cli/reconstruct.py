@@ -10,6 +10,7 @@ from ..estimate import METHODS
 from ..estimate.detection import DEFAULT_FALSE_ALARM
 from ..estimate.drift import CARRIER_ALIGNMENTS
 from ..reconstruct.policy import DEFAULT_MAX_FIT_CHI2, DEFAULT_SNR_THRESHOLD_DB, DEFAULT_TILE_ROWS, ReconstructOptions
+from ..scaleout import add_scheduler_options
 from ..status import Status
 from .common import HelpFormatter, add_quiet, number_in, provenance, range_mm
 
@@ -18,9 +19,10 @@ def add_parser(sub) -> None:
     r = sub.add_parser(
         "reconstruct", help="depth from a capture → depth.h5 (+ PNG, TIFF, PLY)", formatter_class=HelpFormatter
     )
-    r.add_argument("capture", help="capture file (format v1, .h5)")
-    r.add_argument("--out", required=True, help="depth result file (.h5)")
+    r.add_argument("capture", help="capture (format v1): an .h5 file or a .zarr store")
+    r.add_argument("--out", required=True, help="depth result: an .h5 file, or NAME.zarr for a Zarr store")
     add_reconstruction_options(r)
+    add_scheduler_options(r, "local Dask workers (threads or processes) (default: one per core, or one per GPU)")
     r.add_argument("--png", help="colour-mapped depth preview with a colour bar in mm")
     r.add_argument("--tiff", help="float32 depth TIFF in metres (NaN = invalid)")
     r.add_argument("--ply", help="point cloud of valid pixels")
@@ -100,16 +102,27 @@ def run_reconstruct(
     png_reference_m=None,
     png_range_mm=None,
     registration=None,
+    scheduler=None,
+    workers=None,
 ):
     """Reconstruct a capture file and write depth.h5 and the exports asked for → the
-    `reconstruct.Reconstruction`. The capture is opened once."""
+    `reconstruct.Reconstruction`. The capture is opened once. `scheduler`: run on Dask
+    (`scaleout.dask_client`) with `workers` local workers; the depths are the same."""
     from ..capture import Capture
     from ..reconstruct import open_and_reconstruct
     from ..results import save_depth_tiff, save_ply, save_preview_png, write_depth
 
     capture_path = Path(capture_path)
-    with Capture(capture_path) as cap:
-        result = open_and_reconstruct(capture_path, options, calibration, registration, capture=cap)
+    if scheduler is not None:
+        from ..dask_cluster import dask_client
+        from ..reconstruct.dask_bands import reconstruct_on_dask
+
+        with dask_client(scheduler, workers) as client:
+            result, run = reconstruct_on_dask(capture_path, options, client, calibration, registration)
+        result.meta["dask_run"] = run.describe()
+    else:
+        with Capture(capture_path) as cap:
+            result = open_and_reconstruct(capture_path, options, calibration, registration, capture=cap)
     outputs, meta = result.outputs, result.meta
     applied = {"calibration": calibration, "registration": registration}
     write_depth(out, outputs, meta, provenance(capture_path, options, applied))
@@ -154,6 +167,8 @@ def summary(outputs, meta) -> str:
             line += f"; median CRLB (phase-locked, any method) {np.median(crlb) * 1e3:.3f} mm"
         lines.append(line)
     lines += [f"note: {n}" for n in json.loads(meta.get("notes", "[]"))]
+    if "scheduler" in meta:
+        lines.append(f"{meta['scheduler']}; {meta.get('dask_run', '')}")
     lines.append(f"reconstruction {meta['seconds']:.2f} s")
     return "\n".join(lines)
 
@@ -183,6 +198,8 @@ def run(args) -> int:
         args.tiff,
         png_range_mm=args.png_range_mm,
         registration=args.registration,
+        scheduler=args.scheduler,
+        workers=args.workers,
     )
     print(f"wrote {args.out}\n" + summary(result.outputs, result.meta))
     return 0

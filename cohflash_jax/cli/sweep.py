@@ -3,10 +3,13 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from ..design.grid import DEFAULT_CHUNK_POINTS
 from ..design.parameters import PARAMETERS
+from ..scaleout import add_scheduler_options, number_at_least_one
 from .common import HelpFormatter, add_quiet, number_in
 
 DEFAULT_MC_TRIALS = 256
@@ -37,10 +40,12 @@ def add_parser(sub) -> None:
     )
     sw.add_argument(
         "--workers",
-        type=int,
+        type=number_at_least_one,
         default=1,
-        help="processes for Monte Carlo points (the CRLB grid is vectorised in one process)",
+        help="processes for Monte Carlo points (the CRLB grid is vectorised in one process); with "
+        "--scheduler threads or processes, the local Dask workers",
     )
+    add_scheduler_options(sw)
     sw.add_argument(
         "--out",
         required=True,
@@ -75,16 +80,24 @@ def run(args) -> int:
 
     axes = [parse_axis(a) for a in args.axis]
     mc_points = [assignments([m]) for m in args.mc or []]
-    rows = run_sweep(
+    sweep = functools.partial(
+        run_sweep,
         axes,
         args.out,
         fixed=assignments(args.set),
         mc_points=mc_points,
         mc_all=args.mc_all,
         mc_trials=args.mc_trials,
-        workers=args.workers,
         progress=not args.quiet,
     )
+    if args.scheduler is None:
+        rows = sweep(workers=args.workers)
+    else:
+        from ..dask_cluster import dask_client, describe_client
+
+        with dask_client(args.scheduler, args.workers) as client:
+            print(f"Monte Carlo points on {describe_client(client)}")
+            rows = sweep(client=client)
     names = [n for n, _ in axes]
     if args.plot:
         plot_sweep(rows, names, args.plot)

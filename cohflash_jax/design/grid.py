@@ -152,7 +152,8 @@ def grid_points(mc_points: list[dict], axes) -> list[dict]:
     return out
 
 
-def _mc_worker(args):
+def monte_carlo_job(args):
+    """One Monte Carlo point, (point, trials, seed) → its result columns (a worker's task)."""
     point, trials, seed = args
     return monte_carlo(point, trials, seed)
 
@@ -209,11 +210,14 @@ def run_sweep(
     chunk: int = DEFAULT_CHUNK_POINTS,
     progress: bool = True,
     stop_after: int | None = None,
+    client=None,
 ) -> list[dict]:
     """Evaluate the grid (cartesian product of `axes`, other parameters from `fixed` or the
     paper), append rows to `out_csv` after each chunk (atomically), skip points already there.
     `mc_points`: partial points (axis values) that also get a Monte Carlo run; `mc_all`: all.
-    `stop_after`: stop after that many new points (what an interrupt does, for tests)."""
+    `stop_after`: stop after that many new points (what an interrupt does, for tests).
+    `client`: a Dask client whose workers run the Monte Carlo points (`workers` is then unused);
+    the rows are the same as in one process (each point's seed is its own)."""
     fixed = dict(fixed or {})
     names = [n for n, _ in axes]
     if len(set(names)) != len(names):
@@ -267,7 +271,7 @@ def run_sweep(
 
     pool = (
         multiprocessing.get_context("spawn").Pool(workers, initializer=die_with_parent)
-        if workers > 1 and any(needs_mc(p) for p in todo)
+        if workers > 1 and client is None and any(needs_mc(p) for p in todo)
         else None
     )
     try:
@@ -281,7 +285,13 @@ def run_sweep(
                     done.setdefault(_key(r, names), r)
                 mc_jobs = [(i, (p, mc_trials, 0)) for i, p in enumerate(batch) if needs_mc(p)]
                 jobs = [j for _, j in mc_jobs]
-                results = pool.imap(_mc_worker, jobs) if pool is not None else map(_mc_worker, jobs)
+                if client is not None:
+                    futures = client.map(monte_carlo_job, jobs, pure=False, retries=1)
+                    results = (future.result() for future in futures)
+                elif pool is not None:
+                    results = pool.imap(monte_carlo_job, jobs)
+                else:
+                    results = map(monte_carlo_job, jobs)
                 for (i, _), res in zip(mc_jobs, results):
                     rows[i].update(res)
                     done[_key(rows[i], names)] = rows[i]

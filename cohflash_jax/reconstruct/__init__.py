@@ -7,7 +7,16 @@ the devices), `api` (the entry points). The sweep's geometry is `cohflash_jax.ge
 estimators `cohflash_jax.estimate`, the status codes `cohflash_jax.status`.
 """
 
-from .api import Reconstruction, align_carrier, depth_meta, open_and_reconstruct, reconstruct_array, reconstruct_capture
+from .api import (
+    FileSetup,
+    Reconstruction,
+    align_carrier,
+    capture_alignment,
+    depth_meta,
+    open_and_reconstruct,
+    reconstruct_array,
+    reconstruct_capture,
+)
 from .engine import BlockReader, PendingTile, TileDispatcher, aligned_copy, stream_devices, sub_tile_pixels
 from .plan import IQStage, TilePlan, build_plan, frequency_path
 from .policy import (
@@ -22,7 +31,9 @@ from .policy import (
 from .programs import process_tile
 
 __all__ = [
+    "FileSetup",
     "Reconstruction",
+    "capture_alignment",
     "align_carrier",
     "depth_meta",
     "open_and_reconstruct",

@@ -133,6 +133,63 @@ def plan_and_dispatcher(instrument, options, saturation, alignment, sub_px):
     return setup
 
 
+class TileSource:
+    """The inputs of a capture's row tiles of `rows` rows for `process_tile`: the frames
+    (registered onto CCD 1's grid where `registration_maps` are given), the upstream status and
+    the per-pixel dark and gain maps, each padded to the tile shape (one compiled shape)."""
+
+    def __init__(self, capture: Capture, maps: PixelMaps, registration_maps, rows: int):
+        _, self.h, self.w = capture.shape
+        self.rows = rows
+        self.dark, self.gain = maps.offset_dn, maps.gain
+        self.registered = self.reader = None
+        if registration_maps is not None:
+            from ..registered import RegisteredTiles, register_pixel_map
+
+            self.registered = RegisteredTiles(capture, registration_maps, rows)
+            self.dark = None if self.dark is None else register_pixel_map(self.dark, registration_maps)
+            self.gain = None if self.gain is None else register_pixel_map(self.gain, registration_maps)
+        else:
+            self.reader = BlockReader(capture, rows)
+
+    def map_tile(self, arr, r0, r1, fill):
+        """Rows r0:r1 of a (4, H, W) per-pixel map, padded to the tile shape → (4, P)."""
+        if arr is None:
+            return None
+        block = np.full((4, self.rows, self.w), fill, np.float32)
+        block[:, : r1 - r0] = arr[:, r0:r1]
+        return block.reshape(4, self.rows * self.w)
+
+    def inputs(self, r0: int) -> tuple:
+        """(r1, frames (4, N, P), data status (P,) or None, dark (4, P), gain (4, P)) of the tile at row r0."""
+        r1 = min(self.h, r0 + self.rows)
+        maps = (self.map_tile(self.dark, r0, r1, 0.0), self.map_tile(self.gain, r0, r1, 1.0))
+        if self.registered is not None:
+            return self.registered.tile(r0) + maps
+        return (r1, self.reader.read(r0), None) + maps
+
+
+def calibrated_inputs(capture: Capture, instrument, maps):
+    """The instrument and per-pixel maps a capture is reconstructed with (default: the
+    capture's own instrument and dark frame), the maps' gains folded into the instrument."""
+    _, h, w = capture.shape
+    instrument = capture.instrument() if instrument is None else instrument
+    maps = PixelMaps(capture.dark) if maps is None else maps
+    maps.check_shape(h, w, "per-pixel maps")
+    return maps.apply(instrument), maps
+
+
+def capture_alignment(
+    capture: Capture, options: ReconstructOptions, instrument=None, *, maps=None, registration_maps=None
+) -> CarrierAlignment:
+    """The carrier alignment `reconstruct_capture` chooses for this capture (decided on its
+    first tile): a distributed run decides it once and gives it to every band."""
+    instrument, maps = calibrated_inputs(capture, instrument, maps)
+    source = TileSource(capture, maps, registration_maps, min(options.tile_rows, capture.shape[1]))
+    _, block, _, dark, gain = source.inputs(0)
+    return align_carrier(options, instrument, block, dark, gain)
+
+
 def reconstruct_capture(
     capture: Capture,
     options: ReconstructOptions,
@@ -140,64 +197,48 @@ def reconstruct_capture(
     *,
     maps: PixelMaps | None = None,
     registration_maps=None,
+    row_band: tuple[int, int] | None = None,
+    alignment: CarrierAlignment | None = None,
 ) -> Reconstruction:
     """Reconstruct an open capture tile by tile (bounded memory) for `instrument` (default:
     the capture's own, `Capture.instrument`). `maps`: per-pixel offsets and gains (default:
     the capture's dark frame); `registration_maps`: three (map_x, map_y) arrays (H, W) placing
-    CCDs 2–4 on CCD 1's grid."""
+    CCDs 2–4 on CCD 1's grid. `row_band` (r0, r1): those rows only (r0 a multiple of
+    `options.tile_rows`, so the tiles, and the results, are the whole capture's);
+    `alignment`: the carrier alignment to use (default: decided on the first tile)."""
     retain_freed_memory()
     n, h, w = capture.shape
-    instrument = capture.instrument() if instrument is None else instrument
-    maps = PixelMaps(capture.dark) if maps is None else maps
-    maps.check_shape(h, w, "per-pixel maps")
     # registered tiles arrive as float32 with saturation judged upstream on the source pixels
     saturation = None if registration_maps is not None else capture.saturation_dn
-    instrument = maps.apply(instrument)
+    instrument, maps = calibrated_inputs(capture, instrument, maps)
     rows = min(options.tile_rows, h)
-    dark, gain = maps.offset_dn, maps.gain
+    band_start, band_end = (0, h) if row_band is None else row_band
+    if band_start % rows or not 0 <= band_start < band_end <= h:
+        raise ValueError(f"row band {band_start}:{band_end} must start on a tile of {rows} rows and lie in 0:{h}")
     t0 = time.perf_counter()
-
-    registered = None
-    if registration_maps is not None:
-        from ..registered import RegisteredTiles, register_pixel_map
-
-        registered = RegisteredTiles(capture, registration_maps, rows)
-        dark = None if dark is None else register_pixel_map(dark, registration_maps)
-        gain = None if gain is None else register_pixel_map(gain, registration_maps)
-
-    def map_tile(arr, r0, r1, fill):
-        """Rows r0:r1 of a (4, H, W) per-pixel map, padded to the tile shape → (4, P)."""
-        if arr is None:
-            return None
-        block = np.full((4, rows, w), fill, np.float32)
-        block[:, : r1 - r0] = arr[:, r0:r1]
-        return block.reshape(4, rows * w)
-
-    reader = None if registered is not None else BlockReader(capture, rows)
-
-    def tile_inputs(r0):
-        r1 = min(h, r0 + rows)
-        if registered is not None:
-            return registered.tile(r0) + (map_tile(dark, r0, r1, 0.0), map_tile(gain, r0, r1, 1.0))
-        return (r1, reader.read(r0), None, map_tile(dark, r0, r1, 0.0), map_tile(gain, r0, r1, 1.0))
-
+    source = TileSource(capture, maps, registration_maps, rows)
     outputs = {}
 
     def collect(pending, bar):
         tile, r0, r1 = pending
         for k, v in tile.gather().items():
             arr = v.reshape(rows, w)[: r1 - r0]
-            outputs.setdefault(k, np.empty((h, w), arr.dtype))[r0:r1] = arr
+            outputs.setdefault(k, np.empty((band_end - band_start, w), arr.dtype))[
+                r0 - band_start : r1 - band_start
+            ] = arr
         bar.update((r1 - r0) * w)
 
     # the first tile is read before the plan is made: "auto" carrier alignment looks at it
-    first = tile_inputs(0)
-    alignment = align_carrier(options, instrument, first[1], first[3], first[4])
+    first = source.inputs(band_start)
+    if alignment is None:
+        alignment = align_carrier(options, instrument, first[1], first[3], first[4])
     plan, dispatcher = plan_and_dispatcher(instrument, options, saturation, alignment, sub_tile_pixels(rows * w, n))
-    with progress_bar(total=h * w, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True) as bar:
+    total = (band_end - band_start) * w
+    with progress_bar(total=total, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True) as bar:
         pending = None
-        for r0 in range(0, h, rows):
-            r1, block, data_status, d, g = first if r0 == 0 else tile_inputs(r0)
+        for r0 in range(band_start, band_end, rows):
+            r1, block, data_status, d, g = first if r0 == band_start else source.inputs(r0)
+            r1 = min(r1, band_end)
             # dispatched asynchronously: the next tile is read while this one computes
             tile = dispatcher.dispatch(block, d, data_status, g)
             if pending is not None:
@@ -215,23 +256,70 @@ def reconstruct_capture(
     return Reconstruction(outputs, meta, instrument)
 
 
+@dataclasses.dataclass
+class FileSetup:
+    """What a capture file is reconstructed with: its `CaptureSetup`, and the calibration and
+    registration loaded from their files (None where not given) with the registration's three
+    maps placing CCDs 2–4 on CCD 1's grid."""
+
+    setup: CaptureSetup
+    calibration: Calibration | None = None
+    registration: object = None
+    registration_maps: list | None = None
+
+    @classmethod
+    def load(cls, capture: Capture, calibration_path=None, registration_path=None) -> FileSetup:
+        calibration = None if calibration_path is None else Calibration.load(calibration_path)
+        out = cls(CaptureSetup.of(capture, calibration), calibration)
+        if registration_path is not None:
+            from cohflash_calibration.registration import load_registration
+
+            out.registration = load_registration(registration_path)
+            out.registration_maps = [out.registration.maps(k) for k in (2, 3, 4)]
+        return out
+
+    def alignment(self, capture: Capture, options: ReconstructOptions) -> CarrierAlignment:
+        """The carrier alignment a reconstruction of `capture` with this setup chooses."""
+        return capture_alignment(
+            capture, options, self.setup.instrument, maps=self.setup.maps, registration_maps=self.registration_maps
+        )
+
+    def record(self, meta: dict) -> dict:
+        """`meta` with the calibration's fallback notes and what was applied (JSON)."""
+        meta["notes"] = json.dumps(list(self.setup.notes))
+        if self.calibration is not None:
+            meta["calibration_applied"] = json.dumps(self.calibration.values())
+        if self.registration is not None:
+            meta["registration_applied"] = json.dumps(self.registration.summary())
+        return meta
+
+
 def open_and_reconstruct(
-    path, options: ReconstructOptions, calibration_path=None, registration_path=None, capture: Capture | None = None
+    path,
+    options: ReconstructOptions,
+    calibration_path=None,
+    registration_path=None,
+    capture: Capture | None = None,
+    *,
+    row_band: tuple[int, int] | None = None,
+    alignment: CarrierAlignment | None = None,
 ) -> Reconstruction:
     """Reconstruct a capture file for its instrument, calibrated by `calibration_path` and
     registered by `registration_path` where given. `capture`: the file already open (it is
-    then not opened again). The calibration's fallback notes are in `meta["notes"]` (JSON)."""
-    calibration = None if calibration_path is None else Calibration.load(calibration_path)
-    reg_maps = None
-    if registration_path is not None:
-        from cohflash_calibration.registration import load_registration
-
-        reg = load_registration(registration_path)
-        reg_maps = [reg.maps(k) for k in (2, 3, 4)]
+    then not opened again). The calibration's fallback notes are in `meta["notes"]` (JSON).
+    `row_band`, `alignment`: as `reconstruct_capture` (a band of a distributed run)."""
     cap = capture if capture is not None else Capture(path)
     try:
-        setup = CaptureSetup.of(cap, calibration)
-        result = reconstruct_capture(cap, options, setup.instrument, maps=setup.maps, registration_maps=reg_maps)
+        files = FileSetup.load(cap, calibration_path, registration_path)
+        result = reconstruct_capture(
+            cap,
+            options,
+            files.setup.instrument,
+            maps=files.setup.maps,
+            registration_maps=files.registration_maps,
+            row_band=row_band,
+            alignment=alignment,
+        )
     except CaptureError:
         raise
     except (NotImplementedError, ValueError) as exc:
@@ -239,9 +327,5 @@ def open_and_reconstruct(
     finally:
         if capture is None:
             cap.close()
-    result.meta["notes"] = json.dumps(list(setup.notes))
-    if calibration is not None:
-        result.meta["calibration_applied"] = json.dumps(calibration.values())
-    if reg_maps is not None:
-        result.meta["registration_applied"] = json.dumps(reg.summary())
+    files.record(result.meta)
     return result

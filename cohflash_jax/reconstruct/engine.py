@@ -142,11 +142,14 @@ class BlockReader:
     def __init__(self, capture: Capture, rows: int):
         n, h, w = capture.shape
         self.capture, self.rows, self.h = capture, rows, h
-        self.buffers = [np.zeros((4, n, rows, w), capture.frames.dtype) for _ in range(2)]
+        self.shape, self.dtype = (4, n, rows, w), capture.frames.dtype
+        self.buffers = []  # made as needed: a run of one tile needs one
         self.count = 0
 
     def read(self, r0: int) -> np.ndarray:
         r1 = min(self.h, r0 + self.rows)
+        if len(self.buffers) <= self.count % 2:
+            self.buffers.append(np.zeros(self.shape, self.dtype))
         buf = self.buffers[self.count % 2]
         self.count += 1
         if r1 - r0 < self.rows:
