@@ -21,7 +21,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .fileio import atomic_path
+from .fileio import atomic_path, is_store_folder
 from .hybrid import NOMINAL_PHASES_RAD, Hybrid
 from .instrument import DEFAULT_FIELD_OF_VIEW_DEG, Instrument
 from .modulator import MZM
@@ -72,8 +72,8 @@ class CaptureError(ValueError):
     """A capture file is missing, corrupt or does not follow format v1."""
 
 
-def _chunk_shape(num_frames, height, width, frames_per_chunk):
-    return (1, max(1, min(frames_per_chunk, num_frames)), max(1, min(32, height)), width)
+def _chunk_shape(num_frames, height, width, frames_per_chunk, rows_per_chunk=32):
+    return (1, max(1, min(frames_per_chunk, num_frames)), max(1, min(rows_per_chunk, height)), width)
 
 
 def write_capture(
@@ -91,10 +91,31 @@ def write_capture(
     frames_per_chunk: int = 64,
     progress: bool = True,
     by_rows: bool = False,
+    rows_per_chunk: int = 32,
 ) -> Path:
     """Write a v1 capture atomically from an iterator of (m0, m1, frames[4, m1−m0, H, W]), or
-    with `by_rows` of (r0, r1, frames[4, N, r1−r0, W]) (bands of rows, all frames)."""
+    with `by_rows` of (r0, r1, frames[4, N, r1−r0, W]) (bands of rows, all frames). A path
+    NAME.zarr is written as a Zarr store (`capture_zarr.write_zarr_capture`)."""
     path = Path(path)
+    if is_store_folder(path):
+        from .capture_zarr import write_zarr_capture
+
+        return write_zarr_capture(
+            path,
+            chunks,
+            frequencies_hz=frequencies_hz,
+            height=height,
+            width=width,
+            dtype=dtype,
+            attrs=attrs,
+            hybrid_phases_rad=hybrid_phases_rad,
+            dark=dark,
+            truth=truth,
+            frames_per_chunk=frames_per_chunk,
+            progress=progress,
+            by_rows=by_rows,
+            rows_per_chunk=rows_per_chunk,
+        )
     freqs = np.asarray(frequencies_hz, np.float64)
     n = freqs.size
     dtype = np.dtype(dtype)
@@ -110,7 +131,10 @@ def write_capture(
         if missing:
             raise CaptureError(f"capture attributes missing: {', '.join(missing)}")
         frames = f.create_dataset(
-            "frames", shape=(4, n, height, width), dtype=dtype, chunks=_chunk_shape(n, height, width, frames_per_chunk)
+            "frames",
+            shape=(4, n, height, width),
+            dtype=dtype,
+            chunks=_chunk_shape(n, height, width, frames_per_chunk, rows_per_chunk),
         )
         f.create_dataset("frequencies_hz", data=freqs)
         f.create_dataset("hybrid_phases_rad", data=phases)

@@ -162,20 +162,72 @@ def finish_zarr_capture(path) -> Path:
     return path
 
 
+def write_zarr_capture(
+    path,
+    chunks,
+    *,
+    frequencies_hz,
+    height: int,
+    width: int,
+    dtype,
+    attrs: dict,
+    hybrid_phases_rad=None,
+    dark=None,
+    truth: dict | None = None,
+    frames_per_chunk: int = 64,
+    progress: bool = True,
+    by_rows: bool = False,
+    rows_per_chunk: int = DEFAULT_ROWS_PER_CHUNK,
+) -> Path:
+    """`capture.write_capture` into a Zarr store, atomically (a temporary folder renamed into
+    place once complete): from bands of frames (chunks of `frames_per_chunk` frames, as a
+    simulator writes them) or, with `by_rows`, bands of rows of all frames (pixel-major chunks)."""
+    path = Path(path)
+    n = np.asarray(frequencies_hz).size
+    total, unit = (height, "row") if by_rows else (n, "frame")
+    with atomic_path(path) as tmp:
+        create_zarr_capture(
+            tmp,
+            frequencies_hz=frequencies_hz,
+            height=height,
+            width=width,
+            dtype=dtype,
+            attrs=attrs,
+            hybrid_phases_rad=hybrid_phases_rad,
+            dark=dark,
+            truth=truth,
+            frames_per_chunk=None if by_rows else frames_per_chunk,
+            rows_per_chunk=rows_per_chunk,
+        )
+        writer = ZarrCaptureWriter(tmp)
+        written = 0
+        with progress_bar(total=total, unit=unit, desc=f"writing {path.name}", disable=not progress) as bar:
+            for m0, m1, block in chunks:
+                writer.write(block, **{"rows" if by_rows else "frames": slice(m0, m1)})
+                written += m1 - m0
+                bar.update(m1 - m0)
+        if written != total:
+            raise CaptureError(f"wrote {written} of {total} {unit}s")
+        finish_zarr_capture(tmp)
+    return path
+
+
 def convert_capture(source, target, *, progress: bool = True, rows_per_chunk: int = DEFAULT_ROWS_PER_CHUNK) -> Path:
-    """Copy a capture between HDF5 (`.h5`) and Zarr (`.zarr`), either way, streaming one band
-    of `rows_per_chunk` rows at a time (all its frames: a few hundred MB at most for a full
+    """Copy a capture between HDF5 and Zarr (`NAME.zarr`), either way, streaming one band of
+    `rows_per_chunk` rows at a time (all its frames: a few hundred MB at most for a full
     frame). The target appears whole or not at all."""
     source, target = Path(source), Path(target)
-    to_zarr = is_store_folder(target)
     with Capture(source) as cap:
-        if to_zarr == (cap.store == "zarr"):
+        if is_store_folder(target) == (cap.store == "zarr"):
             raise CaptureError(f"{source} is already a {cap.store} capture: give a target of the other kind")
         n, h, w = cap.shape
         truth = {name: cap.truth(name) for name in cap.truth_names}
         if truth:
             truth["attrs"] = cap.truth_attrs
-        header = dict(
+        bands = ((r0, min(h, r0 + rows_per_chunk)) for r0 in range(0, h, rows_per_chunk))
+        return write_capture(
+            target,
+            ((r0, r1, cap.read_tile(slice(r0, r1))) for r0, r1 in bands),
             frequencies_hz=cap.frequencies_hz,
             height=h,
             width=w,
@@ -184,23 +236,7 @@ def convert_capture(source, target, *, progress: bool = True, rows_per_chunk: in
             hybrid_phases_rad=cap.hybrid_phases_rad,
             dark=cap.dark,
             truth=truth or None,
+            progress=progress,
+            by_rows=True,
+            rows_per_chunk=rows_per_chunk,
         )
-        bands = [(r0, min(h, r0 + rows_per_chunk)) for r0 in range(0, h, rows_per_chunk)]
-
-        def blocks(bar=None):
-            for r0, r1 in bands:
-                block = cap.read_tile(slice(r0, r1))
-                if bar is not None:
-                    bar.update(r1 - r0)
-                yield r0, r1, block
-
-        if not to_zarr:
-            return write_capture(target, blocks(), by_rows=True, progress=progress, **header)
-        with atomic_path(target) as tmp:
-            create_zarr_capture(tmp, rows_per_chunk=rows_per_chunk, **header)
-            writer = ZarrCaptureWriter(tmp)
-            with progress_bar(total=h, unit="row", desc=f"writing {target.name}", disable=not progress) as bar:
-                for r0, r1, block in blocks(bar):
-                    writer.write(block, rows=slice(r0, r1))
-            finish_zarr_capture(tmp)
-    return target

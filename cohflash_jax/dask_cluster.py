@@ -12,6 +12,8 @@ from distributed import Client, LocalCluster, WorkerPlugin
 
 from .scaleout import GPU_MEMORY_FRACTION, SCHEDULERS, available_cores, core_sets, prepare_worker
 
+CONNECT_TIMEOUT_S = 10  # a scheduler's address that does not answer in this time is an error
+
 
 class PinnedWorker(WorkerPlugin):
     """A Dask worker plugin for local worker processes: worker k runs on `cores[k]` only (every
@@ -61,7 +63,15 @@ def dask_client(scheduler: str, workers: int | None = None):
     each pinned to its own cores; an address: that cluster's scheduler (its workers are its
     own, started as its operator chose)."""
     if scheduler not in SCHEDULERS:
-        with Client(scheduler) as client:
+        if workers is not None:
+            raise ValueError(
+                "--workers sets local workers: a cluster at an address has the workers it was started with"
+            )
+        try:
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+        except OSError as exc:
+            raise OSError(f"no Dask scheduler answered at {scheduler} ({exc}): is the cluster running?") from None
+        with client:
             client.register_plugin(CompilationCacheOnWorkers())
             yield client
         return

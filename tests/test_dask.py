@@ -93,6 +93,19 @@ def test_cli_on_dask_threads_writes_a_zarr_depth_store_equal_to_the_h5(tmp_path,
     assert meta["format"] == "cohflash-depth" and meta["method"] == "ml"
 
 
+def test_cli_on_a_cluster_at_an_address(tmp_path, capture_h5, single_process, client, capsys):
+    address = client.scheduler.address
+    out = tmp_path / "depth.h5"
+    args = ["reconstruct", str(capture_h5), "--out", str(out), "--tile-rows", str(TILE_ROWS), "--quiet"]
+    assert main(args + ["--scheduler", address]) == 0
+    assert f"Dask at {address}: 2 workers" in capsys.readouterr().out
+    outputs, _ = read_depth(out)
+    for k, v in single_process.items():
+        assert np.array_equal(outputs[k], v.astype(outputs[k].dtype)), k
+    assert main(args + ["--scheduler", address, "--workers", "2"]) == 2
+    assert "a cluster at an address has the workers it was started with" in capsys.readouterr().err
+
+
 def test_a_band_that_fails_for_good_names_its_rows_and_writes_nothing(tmp_path, capture_h5, monkeypatch, capsys):
     import cohflash_jax.reconstruct.dask_bands as bands
 
@@ -184,6 +197,31 @@ def test_finishing_a_capture_with_a_missing_band_names_what_is_missing(tmp_path,
     ZarrCaptureWriter(path).write(reference[:, :, :24], rows=slice(0, 24))
     with pytest.raises(CaptureError, match="4 of 16 chunks of frames were never written"):
         finish_zarr_capture(path)
+
+
+def test_writers_owning_bands_of_frames_and_a_simulated_zarr_capture(tmp_path, capture_h5):
+    with Capture(capture_h5) as cap:
+        reference = cap.read_tile(slice(None))
+        header = dict(
+            frequencies_hz=cap.frequencies_hz,
+            height=HEIGHT,
+            width=WIDTH,
+            dtype=cap.frames.dtype,
+            attrs={k: v for k, v in cap.attrs.items() if k not in ("format", "format_version")},
+        )
+    path = create_zarr_capture(tmp_path / "frames.zarr", frames_per_chunk=FRAMES // 4, **header)
+    for m0 in (FRAMES // 2, 0):  # two writers' halves, in either order
+        ZarrCaptureWriter(path).write(reference[:, m0 : m0 + FRAMES // 2], frames=slice(m0, m0 + FRAMES // 2))
+    finish_zarr_capture(path)
+    with Capture(path) as cap:
+        assert np.array_equal(cap.read_tile(slice(None)), reference)
+    # `simulate --out NAME.zarr` writes a store (chunks of the simulator's frame bands)
+    assert (
+        main(["simulate", "planar", "--size", "8x8", "--steps", "64", "--out", str(tmp_path / "s.zarr"), "--quiet"])
+        == 0
+    )
+    with Capture(tmp_path / "s.zarr") as cap:
+        assert cap.store == "zarr" and cap.shape == (64, 8, 8) and cap.truth_names == ["depth_m", "reflectance"]
 
 
 def test_sweep_monte_carlo_on_dask_gives_the_same_rows(tmp_path, client):

@@ -14,7 +14,12 @@ DEFAULT_SIZE = (256, 320)
 def add_parser(sub) -> None:
     s = sub.add_parser("simulate", help="simulate a capture file (format v1)", formatter_class=HelpFormatter)
     s.add_argument("scene", help="planar, staircase, traffic, or file (with --depth-map)")
-    s.add_argument("--out", required=True, help="capture file to write (.h5)")
+    s.add_argument(
+        "--out",
+        required=True,
+        help="capture to write: an .h5 file, or NAME.zarr for a Zarr store (chunked by the simulator's "
+        "frame bands; `cohflash convert` rechunks pixel-major)",
+    )
     s.add_argument("--size", type=size, default=DEFAULT_SIZE, help="HxW")
     s.add_argument("--steps", type=steps, default=3000, help="frequency steps from 0.1 GHz by 1.97 MHz")
     s.add_argument("--seed", type=int, default=0, help="seed of the noise and speckle")

@@ -41,9 +41,9 @@ def add_parser(sub) -> None:
     sw.add_argument(
         "--workers",
         type=number_at_least_one,
-        default=1,
-        help="processes for Monte Carlo points (the CRLB grid is vectorised in one process); with "
-        "--scheduler threads or processes, the local Dask workers",
+        default=None,
+        help="processes for Monte Carlo points (the CRLB grid is vectorised in one process) (default: 1); with "
+        "--scheduler threads or processes, the local Dask workers (default: one per core)",
     )
     add_scheduler_options(sw)
     sw.add_argument(
@@ -91,7 +91,7 @@ def run(args) -> int:
         progress=not args.quiet,
     )
     if args.scheduler is None:
-        rows = sweep(workers=args.workers)
+        rows = sweep(workers=args.workers or 1)
     else:
         from ..dask_cluster import dask_client, describe_client
 
