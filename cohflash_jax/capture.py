@@ -15,6 +15,7 @@ simulation's settings).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -76,6 +77,78 @@ def _chunk_shape(num_frames, height, width, frames_per_chunk, rows_per_chunk=32)
     return (1, max(1, min(frames_per_chunk, num_frames)), max(1, min(rows_per_chunk, height)), width)
 
 
+# attributes each store's writer sets itself (not copied from one capture to another)
+STORE_ATTRS = ("format", "format_version", "complete", "chunking")
+
+
+@dataclasses.dataclass
+class CaptureHeader:
+    """Everything a capture holds but its frames: their shape and dtype, the root attributes,
+    the sweep, the hybrid's nominal phases (default: `NOMINAL_PHASES_RAD`), the dark frame and
+    the truth (`depth_m`, `reflectance`, `attrs`). Checked when made; the writers of both
+    stores take it (`write_capture`, `capture_zarr.create_zarr_capture`)."""
+
+    frequencies_hz: np.ndarray
+    height: int
+    width: int
+    dtype: np.dtype
+    attrs: dict
+    hybrid_phases_rad: np.ndarray | None = None
+    dark: np.ndarray | None = None
+    truth: dict | None = None
+
+    def __post_init__(self):
+        self.frequencies_hz = np.asarray(self.frequencies_hz, np.float64)
+        self.dtype = np.dtype(self.dtype)
+        if self.dtype not in FRAME_DTYPES:
+            raise CaptureError(f"frames dtype must be uint16 or float32, got {self.dtype}")
+        missing = [k for k in REQUIRED_ATTRS if k not in self.attrs]
+        if missing:
+            raise CaptureError(f"capture attributes missing: {', '.join(missing)}")
+        phases = NOMINAL_PHASES_RAD if self.hybrid_phases_rad is None else self.hybrid_phases_rad
+        self.hybrid_phases_rad = np.asarray(phases, np.float64)
+
+    @property
+    def num_frames(self) -> int:
+        return self.frequencies_hz.size
+
+    def fields(self) -> dict:
+        """The header as `write_capture`'s keyword arguments."""
+        return dict(vars(self))
+
+    @classmethod
+    def of(cls, capture: Capture) -> CaptureHeader:
+        """The header of an open capture (to copy it into another store)."""
+        n, h, w = capture.shape
+        truth = {name: capture.truth(name) for name in capture.truth_names}
+        if truth:
+            truth["attrs"] = capture.truth_attrs
+        return cls(
+            capture.frequencies_hz,
+            h,
+            w,
+            capture.frames.dtype,
+            {k: v for k, v in capture.attrs.items() if k not in STORE_ATTRS},
+            capture.hybrid_phases_rad,
+            capture.dark,
+            truth or None,
+        )
+
+
+def counted_blocks(chunks, header: CaptureHeader, by_rows: bool, desc: str, progress: bool):
+    """The blocks (m0, m1, frames) of `chunks`, bands of frames or (`by_rows`) of rows, passed
+    on with a progress bar; CaptureError if they do not add up to the whole capture."""
+    total, unit = (header.height, "row") if by_rows else (header.num_frames, "frame")
+    written = 0
+    with progress_bar(total=total, unit=unit, desc=desc, disable=not progress) as bar:
+        for m0, m1, block in chunks:
+            yield m0, m1, block
+            written += m1 - m0
+            bar.update(m1 - m0)
+    if written != total:
+        raise CaptureError(f"wrote {written} of {total} {unit}s")
+
+
 def write_capture(
     path,
     chunks: Iterable[tuple[int, int, np.ndarray]],
@@ -97,64 +170,43 @@ def write_capture(
     with `by_rows` of (r0, r1, frames[4, N, r1−r0, W]) (bands of rows, all frames). A path
     NAME.zarr is written as a Zarr store (`capture_zarr.write_zarr_capture`)."""
     path = Path(path)
+    header = CaptureHeader(frequencies_hz, height, width, dtype, attrs, hybrid_phases_rad, dark, truth)
     if is_store_folder(path):
         from .capture_zarr import write_zarr_capture
 
         return write_zarr_capture(
             path,
             chunks,
-            frequencies_hz=frequencies_hz,
-            height=height,
-            width=width,
-            dtype=dtype,
-            attrs=attrs,
-            hybrid_phases_rad=hybrid_phases_rad,
-            dark=dark,
-            truth=truth,
+            header,
             frames_per_chunk=frames_per_chunk,
             progress=progress,
             by_rows=by_rows,
             rows_per_chunk=rows_per_chunk,
         )
-    freqs = np.asarray(frequencies_hz, np.float64)
-    n = freqs.size
-    dtype = np.dtype(dtype)
-    if dtype not in FRAME_DTYPES:
-        raise CaptureError(f"frames dtype must be uint16 or float32, got {dtype}")
-    phases = np.asarray(NOMINAL_PHASES_RAD if hybrid_phases_rad is None else hybrid_phases_rad, np.float64)
+    n = header.num_frames
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = FORMAT_NAME
         f.attrs["format_version"] = FORMAT_VERSION
         for k, v in attrs.items():
             f.attrs[k] = v
-        missing = [k for k in REQUIRED_ATTRS if k not in f.attrs]
-        if missing:
-            raise CaptureError(f"capture attributes missing: {', '.join(missing)}")
         frames = f.create_dataset(
             "frames",
             shape=(4, n, height, width),
-            dtype=dtype,
+            dtype=header.dtype,
             chunks=_chunk_shape(n, height, width, frames_per_chunk, rows_per_chunk),
         )
-        f.create_dataset("frequencies_hz", data=freqs)
-        f.create_dataset("hybrid_phases_rad", data=phases)
+        f.create_dataset("frequencies_hz", data=header.frequencies_hz)
+        f.create_dataset("hybrid_phases_rad", data=header.hybrid_phases_rad)
         if dark is not None:
             f.create_dataset("dark", data=np.asarray(dark, np.float32))
-        total, unit = (height, "row") if by_rows else (n, "frame")
-        with progress_bar(total=total, unit=unit, desc=f"writing {path.name}", disable=not progress) as bar:
-            written = 0
-            for m0, m1, block in chunks:
-                expected = (4, n, m1 - m0, width) if by_rows else (4, m1 - m0, height, width)
-                if block.shape != expected:
-                    raise CaptureError(f"{unit} block {m0}:{m1} has shape {block.shape}, expected {expected}")
-                if by_rows:
-                    frames[:, :, m0:m1] = block
-                else:
-                    frames[:, m0:m1] = block
-                written += m1 - m0
-                bar.update(m1 - m0)
-        if written != total:
-            raise CaptureError(f"wrote {written} of {total} {unit}s")
+        for m0, m1, block in counted_blocks(chunks, header, by_rows, f"writing {path.name}", progress):
+            expected = (4, n, m1 - m0, width) if by_rows else (4, m1 - m0, height, width)
+            if block.shape != expected:
+                raise CaptureError(f"block {m0}:{m1} has shape {block.shape}, expected {expected}")
+            if by_rows:
+                frames[:, :, m0:m1] = block
+            else:
+                frames[:, m0:m1] = block
         if truth is not None:
             g = f.create_group("truth")
             g.create_dataset("depth_m", data=np.asarray(truth["depth_m"], np.float32))

@@ -22,10 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .capture import FORMAT_NAME, FORMAT_VERSION, FRAME_DTYPES, REQUIRED_ATTRS, Capture, CaptureError, write_capture
+from .capture import FORMAT_NAME, FORMAT_VERSION, Capture, CaptureError, CaptureHeader, counted_blocks, write_capture
 from .fileio import atomic_path, is_store_folder, json_value
-from .hybrid import NOMINAL_PHASES_RAD
-from .progress import progress_bar
 
 DEFAULT_ROWS_PER_CHUNK = 32
 DEFAULT_COLS_PER_CHUNK = 64
@@ -48,15 +46,8 @@ def open_zarr_group(path: Path, error=CaptureError):
 
 def create_zarr_capture(
     path,
+    header: CaptureHeader,
     *,
-    frequencies_hz,
-    height: int,
-    width: int,
-    dtype,
-    attrs: dict,
-    hybrid_phases_rad=None,
-    dark=None,
-    truth: dict | None = None,
     frames_per_chunk: int | None = None,
     rows_per_chunk: int = DEFAULT_ROWS_PER_CHUNK,
     cols_per_chunk: int = DEFAULT_COLS_PER_CHUNK,
@@ -67,48 +58,40 @@ def create_zarr_capture(
     import zarr
 
     path = Path(path)
-    freqs = np.asarray(frequencies_hz, np.float64)
-    n = freqs.size
-    dtype = np.dtype(dtype)
-    if dtype not in FRAME_DTYPES:
-        raise CaptureError(f"frames dtype must be uint16 or float32, got {dtype}")
-    missing = [k for k in REQUIRED_ATTRS if k not in attrs]
-    if missing:
-        raise CaptureError(f"capture attributes missing: {', '.join(missing)}")
+    n, h, w = header.num_frames, header.height, header.width
     for name, value in (("frames_per_chunk", frames_per_chunk or n), ("rows_per_chunk", rows_per_chunk)):
         if int(value) < 1:
             raise CaptureError(f"{name} must be at least 1, got {value}")
-    chunks = (1, min(n, int(frames_per_chunk or n)), min(height, int(rows_per_chunk)), min(width, int(cols_per_chunk)))
-    phases = np.asarray(NOMINAL_PHASES_RAD if hybrid_phases_rad is None else hybrid_phases_rad, np.float64)
+    chunks = (1, min(n, int(frames_per_chunk or n)), min(h, int(rows_per_chunk)), min(w, int(cols_per_chunk)))
     group = zarr.open_group(path, mode="w")
     group.attrs.update(
         {
             "format": FORMAT_NAME,
             "format_version": FORMAT_VERSION,
-            **{k: json_value(v) for k, v in attrs.items()},
+            **{k: json_value(v) for k, v in header.attrs.items()},
             "chunking": "frames (CCD, frames, rows, columns) = " + "×".join(map(str, chunks)),
             "complete": False,
         }
     )
     group.create_array(
         "frames",
-        shape=(4, n, height, width),
+        shape=(4, n, h, w),
         chunks=chunks,
-        dtype=dtype,
+        dtype=header.dtype,
         fill_value=0,
         compressors=None,
         config=_WRITE_EVERY_CHUNK,
     )
-    group.create_array("frequencies_hz", data=freqs)
-    group.create_array("hybrid_phases_rad", data=phases)
-    if dark is not None:
-        group.create_array("dark", data=np.asarray(dark, np.float32))
-    if truth is not None:
+    group.create_array("frequencies_hz", data=header.frequencies_hz)
+    group.create_array("hybrid_phases_rad", data=header.hybrid_phases_rad)
+    if header.dark is not None:
+        group.create_array("dark", data=np.asarray(header.dark, np.float32))
+    if header.truth is not None:
         g = group.create_group("truth")
         for name in ("depth_m", "reflectance"):
-            if name in truth:
-                g.create_array(name, data=np.asarray(truth[name], np.float32))
-        g.attrs.update({k: json_value(v) for k, v in truth.get("attrs", {}).items()})
+            if name in header.truth:
+                g.create_array(name, data=np.asarray(header.truth[name], np.float32))
+        g.attrs.update({k: json_value(v) for k, v in header.truth.get("attrs", {}).items()})
     return path
 
 
@@ -165,15 +148,8 @@ def finish_zarr_capture(path) -> Path:
 def write_zarr_capture(
     path,
     chunks,
+    header: CaptureHeader,
     *,
-    frequencies_hz,
-    height: int,
-    width: int,
-    dtype,
-    attrs: dict,
-    hybrid_phases_rad=None,
-    dark=None,
-    truth: dict | None = None,
     frames_per_chunk: int = 64,
     progress: bool = True,
     by_rows: bool = False,
@@ -183,31 +159,11 @@ def write_zarr_capture(
     place once complete): from bands of frames (chunks of `frames_per_chunk` frames, as a
     simulator writes them) or, with `by_rows`, bands of rows of all frames (pixel-major chunks)."""
     path = Path(path)
-    n = np.asarray(frequencies_hz).size
-    total, unit = (height, "row") if by_rows else (n, "frame")
     with atomic_path(path) as tmp:
-        create_zarr_capture(
-            tmp,
-            frequencies_hz=frequencies_hz,
-            height=height,
-            width=width,
-            dtype=dtype,
-            attrs=attrs,
-            hybrid_phases_rad=hybrid_phases_rad,
-            dark=dark,
-            truth=truth,
-            frames_per_chunk=None if by_rows else frames_per_chunk,
-            rows_per_chunk=rows_per_chunk,
-        )
-        writer = ZarrCaptureWriter(tmp)
-        written = 0
-        with progress_bar(total=total, unit=unit, desc=f"writing {path.name}", disable=not progress) as bar:
-            for m0, m1, block in chunks:
-                writer.write(block, **{"rows" if by_rows else "frames": slice(m0, m1)})
-                written += m1 - m0
-                bar.update(m1 - m0)
-        if written != total:
-            raise CaptureError(f"wrote {written} of {total} {unit}s")
+        chunking = dict(frames_per_chunk=None if by_rows else frames_per_chunk, rows_per_chunk=rows_per_chunk)
+        writer = ZarrCaptureWriter(create_zarr_capture(tmp, header, **chunking))
+        for m0, m1, block in counted_blocks(chunks, header, by_rows, f"writing {path.name}", progress):
+            writer.write(block, **{"rows" if by_rows else "frames": slice(m0, m1)})
         finish_zarr_capture(tmp)
     return path
 
@@ -220,22 +176,12 @@ def convert_capture(source, target, *, progress: bool = True, rows_per_chunk: in
     with Capture(source) as cap:
         if is_store_folder(target) == (cap.store == "zarr"):
             raise CaptureError(f"{source} is already a {cap.store} capture: give a target of the other kind")
-        n, h, w = cap.shape
-        truth = {name: cap.truth(name) for name in cap.truth_names}
-        if truth:
-            truth["attrs"] = cap.truth_attrs
+        h = cap.shape[1]
         bands = ((r0, min(h, r0 + rows_per_chunk)) for r0 in range(0, h, rows_per_chunk))
         return write_capture(
             target,
             ((r0, r1, cap.read_tile(slice(r0, r1))) for r0, r1 in bands),
-            frequencies_hz=cap.frequencies_hz,
-            height=h,
-            width=w,
-            dtype=cap.frames.dtype,
-            attrs={k: v for k, v in cap.attrs.items() if k not in ("format", "format_version", "complete", "chunking")},
-            hybrid_phases_rad=cap.hybrid_phases_rad,
-            dark=cap.dark,
-            truth=truth or None,
+            **CaptureHeader.of(cap).fields(),
             progress=progress,
             by_rows=True,
             rows_per_chunk=rows_per_chunk,

@@ -1,6 +1,6 @@
-"""Running cohflash's work on Dask (`dask.distributed`): the command-line options, and what
-every worker process sets up before its first task (`prepare_worker`). The clients and the
-worker plugins, which import Dask: `dask_cluster`.
+"""Running cohflash's work on Dask (`dask.distributed`): what every worker process sets up
+before its first task (`prepare_worker`), and how local workers share the cores. The clients
+and the worker plugins, which import Dask: `dask_cluster`; the options: `cli.common`.
 
 A worker runs the same JAX programs as the single-process CLI, compiled inside the worker once
 per tile shape (never pickled) and kept in the persistent compilation cache, which workers on
@@ -21,43 +21,6 @@ import os
 SCHEDULERS = ("threads", "processes")
 ADDRESS_PREFIXES = ("tcp://", "tls://", "ucx://", "inproc://")
 GPU_MEMORY_FRACTION = 0.7  # of each worker's one GPU
-
-
-def parse_scheduler(text: str) -> str:
-    """An argparse type: 'threads', 'processes' or a scheduler's address (tcp://HOST:PORT)."""
-    import argparse
-
-    if text in SCHEDULERS or (text.startswith(ADDRESS_PREFIXES) and len(text.split("://", 1)[1]) > 0):
-        return text
-    raise argparse.ArgumentTypeError(
-        f"scheduler must be threads, processes or a Dask scheduler's address such as tcp://HOST:8786, got {text!r}"
-    )
-
-
-def add_scheduler_options(parser, workers_help: str | None = None) -> None:
-    """--scheduler, and --workers where `workers_help` is given (`sweep` has its own)."""
-    parser.add_argument(
-        "--scheduler",
-        type=parse_scheduler,
-        default=None,
-        help="run on Dask: threads or processes (local workers), or tcp://HOST:PORT (a dask.distributed "
-        "cluster's scheduler) (default: this process alone)",
-    )
-    if workers_help is not None:
-        parser.add_argument("--workers", type=number_at_least_one, default=None, help=workers_help)
-
-
-def number_at_least_one(text: str) -> int:
-    """An argparse type: a whole number of workers, at least 1."""
-    import argparse
-
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"workers must be a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"workers must be at least 1, got {value}")
-    return value
 
 
 def available_cores() -> list[int]:

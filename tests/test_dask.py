@@ -8,7 +8,7 @@ import signal
 import numpy as np
 import pytest
 
-from cohflash_jax.capture import Capture, CaptureError
+from cohflash_jax.capture import Capture, CaptureError, CaptureHeader
 from cohflash_jax.capture_zarr import ZarrCaptureWriter, convert_capture, create_zarr_capture, finish_zarr_capture
 from cohflash_jax.cli import main
 from cohflash_jax.reconstruct import ReconstructOptions, open_and_reconstruct
@@ -155,16 +155,8 @@ def test_a_zarr_capture_filled_by_two_processes_at_once_reads_back_complete(tmp_
     (tmp_path / "capture.h5").symlink_to(capture_h5)
     path = tmp_path / "two.zarr"
     with Capture(capture_h5) as cap:
-        header = dict(
-            frequencies_hz=cap.frequencies_hz,
-            height=HEIGHT,
-            width=WIDTH,
-            dtype=cap.frames.dtype,
-            attrs={k: v for k, v in cap.attrs.items() if k not in ("format", "format_version")},
-            hybrid_phases_rad=cap.hybrid_phases_rad,
-        )
-        reference = cap.read_tile(slice(None))
-    create_zarr_capture(path, rows_per_chunk=4, cols_per_chunk=8, **header)
+        header, reference = CaptureHeader.of(cap), cap.read_tile(slice(None))
+    create_zarr_capture(path, header, rows_per_chunk=4, cols_per_chunk=8)
     with pytest.raises(CaptureError, match="incomplete"):
         Capture(path)
     with pytest.raises(CaptureError, match="whole chunks"):  # a band that would share a chunk
@@ -185,15 +177,8 @@ def test_a_zarr_capture_filled_by_two_processes_at_once_reads_back_complete(tmp_
 
 def test_finishing_a_capture_with_a_missing_band_names_what_is_missing(tmp_path, capture_h5):
     with Capture(capture_h5) as cap:
-        reference = cap.read_tile(slice(None))
-        header = dict(
-            frequencies_hz=cap.frequencies_hz,
-            height=HEIGHT,
-            width=WIDTH,
-            dtype=cap.frames.dtype,
-            attrs={k: v for k, v in cap.attrs.items() if k not in ("format", "format_version")},
-        )
-    path = create_zarr_capture(tmp_path / "partial.zarr", rows_per_chunk=8, **header)
+        header, reference = CaptureHeader.of(cap), cap.read_tile(slice(None))
+    path = create_zarr_capture(tmp_path / "partial.zarr", header, rows_per_chunk=8)
     ZarrCaptureWriter(path).write(reference[:, :, :24], rows=slice(0, 24))
     with pytest.raises(CaptureError, match="4 of 16 chunks of frames were never written"):
         finish_zarr_capture(path)
@@ -201,15 +186,8 @@ def test_finishing_a_capture_with_a_missing_band_names_what_is_missing(tmp_path,
 
 def test_writers_owning_bands_of_frames_and_a_simulated_zarr_capture(tmp_path, capture_h5):
     with Capture(capture_h5) as cap:
-        reference = cap.read_tile(slice(None))
-        header = dict(
-            frequencies_hz=cap.frequencies_hz,
-            height=HEIGHT,
-            width=WIDTH,
-            dtype=cap.frames.dtype,
-            attrs={k: v for k, v in cap.attrs.items() if k not in ("format", "format_version")},
-        )
-    path = create_zarr_capture(tmp_path / "frames.zarr", frames_per_chunk=FRAMES // 4, **header)
+        header, reference = CaptureHeader.of(cap), cap.read_tile(slice(None))
+    path = create_zarr_capture(tmp_path / "frames.zarr", header, frames_per_chunk=FRAMES // 4)
     for m0 in (FRAMES // 2, 0):  # two writers' halves, in either order
         ZarrCaptureWriter(path).write(reference[:, m0 : m0 + FRAMES // 2], frames=slice(m0, m0 + FRAMES // 2))
     finish_zarr_capture(path)

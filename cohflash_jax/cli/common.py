@@ -92,6 +92,33 @@ def roi(text: str) -> list[tuple[int, int]]:
     return [(r, c) for r in range(r0, r1) for c in range(c0, c1)]
 
 
+def scheduler(text: str) -> str:
+    """An argparse type: 'threads', 'processes' or a Dask scheduler's address (tcp://HOST:PORT)."""
+    from ..scaleout import ADDRESS_PREFIXES, SCHEDULERS
+
+    if text in SCHEDULERS or (text.startswith(ADDRESS_PREFIXES) and len(text.split("://", 1)[1]) > 0):
+        return text
+    raise argparse.ArgumentTypeError(
+        f"scheduler must be threads, processes or a Dask scheduler's address such as tcp://HOST:8786, got {text!r}"
+    )
+
+
+WORKERS = number_in(1, 10**6, "workers", False, True)
+
+
+def add_scheduler_options(parser: argparse.ArgumentParser, workers_help: str | None = None) -> None:
+    """--scheduler, and --workers where `workers_help` is given (`sweep` has its own)."""
+    parser.add_argument(
+        "--scheduler",
+        type=scheduler,
+        default=None,
+        help="run on Dask: threads or processes (local workers), or tcp://HOST:PORT (a dask.distributed "
+        "cluster's scheduler) (default: this process alone)",
+    )
+    if workers_help is not None:
+        parser.add_argument("--workers", type=WORKERS, default=None, help=workers_help)
+
+
 def add_quiet(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 

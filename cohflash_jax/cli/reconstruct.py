@@ -10,9 +10,8 @@ from ..estimate import METHODS
 from ..estimate.detection import DEFAULT_FALSE_ALARM
 from ..estimate.drift import CARRIER_ALIGNMENTS
 from ..reconstruct.policy import DEFAULT_MAX_FIT_CHI2, DEFAULT_SNR_THRESHOLD_DB, DEFAULT_TILE_ROWS, ReconstructOptions
-from ..scaleout import add_scheduler_options
 from ..status import Status
-from .common import HelpFormatter, add_quiet, number_in, provenance, range_mm
+from .common import HelpFormatter, add_quiet, add_scheduler_options, number_in, provenance, range_mm
 
 
 def add_parser(sub) -> None:

@@ -9,8 +9,7 @@ import numpy as np
 
 from ..design.grid import DEFAULT_CHUNK_POINTS
 from ..design.parameters import PARAMETERS
-from ..scaleout import add_scheduler_options, number_at_least_one
-from .common import HelpFormatter, add_quiet, number_in
+from .common import WORKERS, HelpFormatter, add_quiet, add_scheduler_options, number_in
 
 DEFAULT_MC_TRIALS = 256
 
@@ -40,7 +39,7 @@ def add_parser(sub) -> None:
     )
     sw.add_argument(
         "--workers",
-        type=number_at_least_one,
+        type=WORKERS,
         default=None,
         help="processes for Monte Carlo points (the CRLB grid is vectorised in one process) (default: 1); with "
         "--scheduler threads or processes, the local Dask workers (default: one per core)",
