@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import ctypes
 import os
 import sys
@@ -16,6 +18,23 @@ _applied = False
 # bound of JAX's own compilation cache (least recently used out); the executable cache has its
 # own (`ExecutableCache.MAX_BYTES`)
 XLA_CACHE_MAX_BYTES = 512 * 2**20
+
+# Programs compiled inside `quick_compile()` are compiled at XLA's lowest optimisation level:
+# a small capture (a region of interest) runs each program once or twice, so the compile is
+# most of its time and the program's speed hardly counts (docs/performance.md)
+_QUICK_COMPILE: contextvars.ContextVar[bool] = contextvars.ContextVar("quick_compile", default=False)
+QUICK_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
+
+
+@contextlib.contextmanager
+def quick_compile(enabled: bool = True):
+    """Compile the programs first called inside this block (in this thread) for a short
+    compile rather than fast code. Programs compiled either way are kept apart."""
+    token = _QUICK_COMPILE.set(bool(enabled))
+    try:
+        yield
+    finally:
+        _QUICK_COMPILE.reset(token)
 
 
 def async_filter_jit(fun):
@@ -60,11 +79,12 @@ def async_filter_jit(fun):
         if any(isinstance(x, jax.core.Tracer) for x in leaves):  # inside another transformation
             return traced(static, treedef)(*leaves)
         signature = tuple(_argument_signature(x) for x in leaves)
-        key = (static, treedef, signature)
+        quick = _QUICK_COMPILE.get()
+        key = (static, treedef, signature, quick)
         program = programs.get(key)
         if program is None:
             flat = flat_fun(static, treedef)
-            program = programs[key] = EXECUTABLES.program(fun, flat, (static, treedef, signature), leaves)
+            program = programs[key] = EXECUTABLES.program(fun, flat, (static, treedef, signature), leaves, quick)
         return program(*leaves)
 
     return call
@@ -135,7 +155,7 @@ class ExecutableCache:
             )
         return self._environment
 
-    def key(self, fun, static, treedef, signature) -> str | None:
+    def key(self, fun, static, treedef, signature, quick: bool = False) -> str | None:
         """The entry's file name, or None where the static half has no stable text."""
         import hashlib
 
@@ -145,19 +165,21 @@ class ExecutableCache:
         if " at 0x" in text:
             return None
         shapes = repr([(shape, dtype, weak, None if sh is None else repr(sh)) for shape, dtype, weak, sh in signature])
-        whole = "|".join((self.environment(), fun.__module__, fun.__qualname__, text, str(treedef), shapes))
+        parts = (self.environment(), fun.__module__, fun.__qualname__, text, str(treedef), shapes)
+        whole = "|".join(parts + (("quick",) if quick else ()))
         return f"{fun.__name__.strip('_')}-{hashlib.sha256(whole.encode()).hexdigest()[:40]}.exe"
 
-    def program(self, fun, flat, parts, leaves):
-        """The compiled `flat` for these leaves: from disk, else compiled (and written)."""
+    def program(self, fun, flat, parts, leaves, quick: bool = False):
+        """The compiled `flat` for these leaves: from disk, else compiled (and written);
+        `quick`: compiled for a short compile (`quick_compile`)."""
         import pickle
 
         import jax
 
         jitted = jax.jit(flat)
-        name = self.key(fun, *parts) if self.folder is not None else None
+        name = self.key(fun, *parts, quick) if self.folder is not None else None
         if name is None:
-            return jitted
+            return self._compile(jitted, leaves, None, quick) if quick else jitted
         path = self.folder / name
         if path.exists():
             started = time.perf_counter()
@@ -170,10 +192,10 @@ class ExecutableCache:
                 os.utime(path)  # recently used: the bound removes the oldest first
                 self.loaded += 1
                 self.load_seconds += time.perf_counter() - started
-                return self._checked(program, path, lambda: self._compile(jitted, leaves, path))
+                return self._checked(program, path, lambda: self._compile(jitted, leaves, path, quick))
             except Exception:  # a damaged or foreign entry: compile afresh and replace it
                 path.unlink(missing_ok=True)
-        return self._compile(jitted, leaves, path)
+        return self._compile(jitted, leaves, path, quick)
 
     def _checked(self, program, path: Path, recompile):
         """`program`, whose first call waits for its result: an entry that loads but cannot
@@ -196,8 +218,9 @@ class ExecutableCache:
 
         return run
 
-    def _compile(self, jitted, leaves, path: Path):
-        """Compile `jitted` for these leaves and write the executable to `path`."""
+    def _compile(self, jitted, leaves, path: Path | None, quick: bool = False):
+        """Compile `jitted` for these leaves and write the executable to `path` (None: kept in
+        this process only); `quick`: at XLA's lowest optimisation level."""
         started = time.perf_counter()
         try:
             # an executable that came from JAX's own cache serialises without its kernels
@@ -206,11 +229,14 @@ class ExecutableCache:
             # (how many buffers a buffer-assignment dump lists) with a value of its own gives
             # it a key of its own in that cache
             options = {"xla_debug_buffer_assignment_show_max": 1_000_000 + time.monotonic_ns() % 1_000_000_000}
-            compiled = jitted.lower(*leaves).compile(compiler_options=options)
+            compiled = jitted.lower(*leaves).compile(
+                compiler_options=options | (QUICK_COMPILE_OPTIONS if quick else {})
+            )
         except Exception:  # e.g. an argument jit accepts but lowering with it does not
             return jitted
         self.compiled += 1
-        self._write(path, compiled)
+        if path is not None:
+            self._write(path, compiled)
         self.compile_seconds += time.perf_counter() - started
         return compiled
 

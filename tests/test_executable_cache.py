@@ -58,3 +58,29 @@ def test_a_static_half_without_stable_text_stays_in_memory():
 
     key = EXECUTABLES.key(test_a_static_half_without_stable_text_stays_in_memory, (lambda: 0,), None, ())
     assert key is None
+
+
+def test_quick_compiled_programs_are_kept_apart_and_agree_with_optimised_ones():
+    """A region of interest is compiled at XLA's lowest optimisation level (`quick_compile`):
+    its programs have entries of their own, and its depths agree with the optimised
+    programs' to far below σ."""
+    import jax
+
+    import cohflash_jax as cf
+    from cohflash_jax.reconstruct import ReconstructOptions, TileDispatcher, build_plan
+    from cohflash_jax.runtime import EXECUTABLES, quick_compile
+
+    fun = test_quick_compiled_programs_are_kept_apart_and_agree_with_optimised_ones
+    assert EXECUTABLES.key(fun, (1,), None, (), False) != EXECUTABLES.key(fun, (1,), None, (), True)
+    inst = cf.Instrument.paper(256)
+    frames = cf.simulate(cf.planar(12.0, 0.9, effects=("shot_noise", "read_noise")), inst, 4, 8, jax.random.key(5))
+    plan = build_plan(inst, ReconstructOptions(progress=False))
+    tile = np.ascontiguousarray(np.asarray(frames).reshape(4, 256, 32))
+    outputs = []
+    for quick in (False, True):
+        with quick_compile(quick):
+            outputs.append(TileDispatcher(plan, 32).dispatch(tile).gather())
+    optimised, quick = outputs
+    np.testing.assert_array_equal(optimised["fit_status"], quick["fit_status"])
+    assert optimised["valid"].all()
+    assert np.max(np.abs(optimised["depth_m"] - quick["depth_m"]) / optimised["sigma_m"]) < 1e-3

@@ -18,10 +18,14 @@ from ..estimate.drift import CarrierAlignment, choose_carrier_alignment
 from ..fisher import crlb_at_unit_snr_m
 from ..instrument import Instrument
 from ..progress import progress_bar
-from ..runtime import retain_freed_memory
+from ..runtime import quick_compile, retain_freed_memory
 from .engine import BlockReader, TileDispatcher, sub_tile_pixels
 from .plan import TilePlan, build_plan, frequency_path
 from .policy import ReconstructOptions
+
+# captures of at most this many pixels (a region of interest) run their programs once or
+# twice: they are compiled for a short compile (`runtime.quick_compile`); larger ones for speed
+QUICK_COMPILE_MAX_PIXELS = 1024
 
 
 @dataclasses.dataclass
@@ -70,7 +74,8 @@ def reconstruct_array(
         alignment = align_carrier(options, instrument, frames.reshape(4, n, h * w), dark, gain)
     plan = build_plan(instrument, options, saturation_dn, tracking=alignment.tracking)
     dispatcher = TileDispatcher(plan, sub_tile_pixels(h * w, n), alignment.phase_rad)
-    out = dispatcher.dispatch(frames.reshape(4, n, h * w), dark, None, gain).gather()
+    with quick_compile(h * w <= QUICK_COMPILE_MAX_PIXELS):
+        out = dispatcher.dispatch(frames.reshape(4, n, h * w), dark, None, gain).gather()
     return {k: v.reshape(h, w) for k, v in out.items()}
 
 
@@ -234,7 +239,9 @@ def reconstruct_capture(
         alignment = align_carrier(options, instrument, first[1], first[3], first[4])
     plan, dispatcher = plan_and_dispatcher(instrument, options, saturation, alignment, sub_tile_pixels(rows * w, n))
     total = (band_end - band_start) * w
-    with progress_bar(total=total, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True) as bar:
+    bar = progress_bar(total=total, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True)
+    # the whole capture's size decides, so that every band of a distributed run decides alike
+    with bar, quick_compile(h * w <= QUICK_COMPILE_MAX_PIXELS):
         pending = None
         for r0 in range(band_start, band_end, rows):
             r1, block, data_status, d, g = first if r0 == band_start else source.inputs(r0)
