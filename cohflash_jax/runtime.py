@@ -282,7 +282,7 @@ EXECUTABLES = ExecutableCache()
 
 def use_cpu_streams(count: int = 2) -> int:
     """Give JAX `count` CPU devices, over which a reconstruction spreads its sub-tiles
-    (`reconstruct.stream_devices`), so that two sub-tiles' programs run at once. Takes effect
+    (`stream_devices`), so that two sub-tiles' programs run at once. Takes effect
     only before JAX's first computation in the process (the CLI calls it first thing);
     afterwards it changes nothing. Returns the number of CPU devices in force."""
     import jax
@@ -292,6 +292,29 @@ def use_cpu_streams(count: int = 2) -> int:
     except RuntimeError:  # JAX already initialised its backends: keep what it has
         pass
     return len(jax.devices("cpu"))
+
+
+def stream_devices() -> list:
+    """The devices sub-tiles of a reconstruction (and chunks of a simulation) are spread over,
+    in turn: every local CPU device where JAX has several (`use_cpu_streams`), else the
+    default device alone. One CPU device runs its programs one at a time, and the serial
+    stretches of a program (the ML polish's Newton loop on a few hundred pixels) leave the
+    other cores idle; two devices run two sub-tiles' programs at once."""
+    import jax
+
+    devices = jax.local_devices()
+    return devices if devices[0].platform == "cpu" else devices[:1]
+
+
+def place_on_devices(tree, devices: list) -> list:
+    """`tree` with its arrays placed on each of `devices` (the tree itself where there is one)."""
+    import equinox as eqx
+    import jax
+
+    if len(devices) == 1:
+        return [tree]
+    put = lambda tree, d: jax.tree.map(lambda x: jax.device_put(x, d) if eqx.is_array(x) else x, tree)
+    return [put(tree, d) for d in devices]
 
 
 def retain_freed_memory(threshold_bytes: int = 1 << 30) -> bool:

@@ -12,12 +12,12 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..capture import Capture
+from ..runtime import place_on_devices, stream_devices
 from .plan import TilePlan
 from .programs import process_tile
 
@@ -59,16 +59,6 @@ def aligned_copy(view: np.ndarray, width: int) -> np.ndarray:
     return out
 
 
-def stream_devices() -> list:
-    """The devices sub-tiles are spread over, in turn: every local CPU device where JAX has
-    several (`runtime.use_cpu_streams`), else the default device alone. One CPU device runs
-    its programs one at a time, and the serial stretches of a program (the ML polish's Newton
-    loop on a few hundred pixels) leave the other cores idle; two devices run two sub-tiles'
-    programs at once."""
-    devices = jax.local_devices()
-    return devices if devices[0].platform == "cpu" else devices[:1]
-
-
 @dataclasses.dataclass
 class PendingTile:
     """The dispatched sub-tiles of one tile of `num_pixels` pixels (their results computing)."""
@@ -92,11 +82,7 @@ class TileDispatcher:
         self.sub_px = sub_px
         self.devices = stream_devices()
         carrier = None if carrier_phase_rad is None else jnp.asarray(carrier_phase_rad)
-        if len(self.devices) == 1:
-            self.placed = [(plan, carrier)]
-        else:
-            put = lambda tree, d: jax.tree.map(lambda x: jax.device_put(x, d) if eqx.is_array(x) else x, tree)
-            self.placed = [put((plan, carrier), d) for d in self.devices]
+        self.placed = place_on_devices((plan, carrier), self.devices)
 
     def dispatch(self, frames, dark=None, data_status=None, gain=None) -> PendingTile:
         """Dispatch a tile (4, N, P) with its per-pixel maps (4, P) and upstream status (P,)."""
