@@ -175,7 +175,8 @@ def convert_capture(source, target, *, progress: bool = True, rows_per_chunk: in
     source, target = Path(source), Path(target)
     with Capture(source) as cap:
         if is_store_folder(target) == (cap.store == "zarr"):
-            raise CaptureError(f"{source} is already a {cap.store} capture: give a target of the other kind")
+            kind = {"zarr": "a Zarr", "hdf5": "an HDF5"}[cap.store]
+            raise CaptureError(f"{source} is already {kind} capture: give a target of the other kind (.h5 or .zarr)")
         h = cap.shape[1]
         bands = ((r0, min(h, r0 + rows_per_chunk)) for r0 in range(0, h, rows_per_chunk))
         return write_capture(

@@ -182,6 +182,12 @@ def test_finishing_a_capture_with_a_missing_band_names_what_is_missing(tmp_path,
     ZarrCaptureWriter(path).write(reference[:, :, :24], rows=slice(0, 24))
     with pytest.raises(CaptureError, match="4 of 16 chunks of frames were never written"):
         finish_zarr_capture(path)
+    ZarrCaptureWriter(path).write(reference[:, :, 24:], rows=slice(24, 32))
+    finish_zarr_capture(path)
+    chunk_file = next(p for p in (path / "frames" / "c").rglob("*") if p.is_file())  # deleted after finishing
+    chunk_file.unlink()
+    with pytest.raises(CaptureError, match="1 of 16 chunks of frames are missing"):
+        Capture(path)
 
 
 def test_writers_owning_bands_of_frames_and_a_simulated_zarr_capture(tmp_path, capture_h5):
