@@ -228,9 +228,8 @@ def reconstruct_capture(
         tile, r0, r1 = pending
         for k, v in tile.gather().items():
             arr = v.reshape(rows, w)[: r1 - r0]
-            outputs.setdefault(k, np.empty((band_end - band_start, w), arr.dtype))[
-                r0 - band_start : r1 - band_start
-            ] = arr
+            band = outputs.setdefault(k, np.empty((band_end - band_start, w), arr.dtype))
+            band[r0 - band_start : r1 - band_start] = arr
         bar.update((r1 - r0) * w)
 
     # the first tile is read before the plan is made: "auto" carrier alignment looks at it
