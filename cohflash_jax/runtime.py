@@ -280,11 +280,18 @@ def bound_folder(folder: Path, pattern: str, max_bytes: int):
 EXECUTABLES = ExecutableCache()
 
 
-def use_cpu_streams(count: int = 2) -> int:
-    """Give JAX `count` CPU devices, over which a reconstruction spreads its sub-tiles
-    (`stream_devices`), so that two sub-tiles' programs run at once. Takes effect
-    only before JAX's first computation in the process (the CLI calls it first thing);
-    afterwards it changes nothing. Returns the number of CPU devices in force."""
+# CPU devices the CLI asks for: one. Two let two sub-tiles' programs run at once, which paid
+# while the ML polish had long serial stretches; measured since (docs/performance.md), one is as
+# fast warm and compiles every program once instead of once per device (cold: 3–5 s less)
+CLI_CPU_STREAMS = 1
+
+
+def use_cpu_streams(count: int = CLI_CPU_STREAMS) -> int:
+    """Give JAX `count` CPU devices, over which a reconstruction spreads its sub-tiles and a
+    simulation its frame chunks (`stream_devices`), so that several programs run at once.
+    Every program is compiled once per device. Takes effect only before JAX's first
+    computation in the process (the CLI calls it first thing); afterwards it changes nothing.
+    Returns the number of CPU devices in force."""
     import jax
 
     try:

@@ -45,15 +45,15 @@ _prepared = False
 
 def prepare_worker() -> None:
     """Once per process, before the first task's JAX work: the persistent compilation cache
-    (shared by the workers of one file system), and one JAX CPU device per allowed core, up
-    to two (`runtime.use_cpu_streams`). The CLI's own process has done both already."""
+    (shared by the workers of one file system), and the CLI's number of JAX CPU devices
+    (`runtime.use_cpu_streams`). The CLI's own process has done both already."""
     global _prepared
     if _prepared:
         return
     from .runtime import enable_compilation_cache, use_cpu_streams
 
     enable_compilation_cache()
-    use_cpu_streams(min(2, len(available_cores())))
+    use_cpu_streams()
     _prepared = True
 
 
