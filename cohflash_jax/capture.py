@@ -187,7 +187,7 @@ def write_capture(
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = FORMAT_NAME
         f.attrs["format_version"] = FORMAT_VERSION
-        for k, v in attrs.items():
+        for k, v in header.attrs.items():
             f.attrs[k] = v
         frames = f.create_dataset(
             "frames",
@@ -197,8 +197,8 @@ def write_capture(
         )
         f.create_dataset("frequencies_hz", data=header.frequencies_hz)
         f.create_dataset("hybrid_phases_rad", data=header.hybrid_phases_rad)
-        if dark is not None:
-            f.create_dataset("dark", data=np.asarray(dark, np.float32))
+        if header.dark is not None:
+            f.create_dataset("dark", data=np.asarray(header.dark, np.float32))
         for m0, m1, block in counted_blocks(chunks, header, by_rows, f"writing {path.name}", progress):
             expected = (4, n, m1 - m0, width) if by_rows else (4, m1 - m0, height, width)
             if block.shape != expected:
@@ -207,11 +207,11 @@ def write_capture(
                 frames[:, :, m0:m1] = block
             else:
                 frames[:, m0:m1] = block
-        if truth is not None:
+        if header.truth is not None:
             g = f.create_group("truth")
-            g.create_dataset("depth_m", data=np.asarray(truth["depth_m"], np.float32))
-            g.create_dataset("reflectance", data=np.asarray(truth["reflectance"], np.float32))
-            for k, v in truth.get("attrs", {}).items():
+            g.create_dataset("depth_m", data=np.asarray(header.truth["depth_m"], np.float32))
+            g.create_dataset("reflectance", data=np.asarray(header.truth["reflectance"], np.float32))
+            for k, v in header.truth.get("attrs", {}).items():
                 g.attrs[k] = v
     return path
 

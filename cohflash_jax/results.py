@@ -96,9 +96,9 @@ def read_depth(path) -> tuple[dict, dict]:
     """A depth file's (or depth Zarr store's) arrays and attributes."""
     path = Path(path)
     if path.is_dir() and (path / "zarr.json").is_file():
-        import zarr
+        from .capture_zarr import open_zarr_group
 
-        group = zarr.open_group(path, mode="r")
+        group = open_zarr_group(path, ValueError)
         if group.attrs.get("format") != FORMAT_NAME:
             raise ValueError(f"{path}: not a cohflash depth store")
         return {k: group[k][()] for k in group.array_keys()}, dict(group.attrs)

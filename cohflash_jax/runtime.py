@@ -280,9 +280,10 @@ def bound_folder(folder: Path, pattern: str, max_bytes: int):
 EXECUTABLES = ExecutableCache()
 
 
-# CPU devices the CLI asks for: one. Two let two sub-tiles' programs run at once, which paid
-# while the ML polish had long serial stretches; measured since (docs/performance.md), one is as
-# fast warm and compiles every program once instead of once per device (cold: 3–5 s less)
+# CPU devices the CLI asks for, unless a command asks otherwise (`cli.CPU_STREAMS`): one. Two
+# let two sub-tiles' programs run at once, which paid while the ML polish had long serial
+# stretches; measured since (docs/performance.md), one is as fast warm and compiles every
+# program once instead of once per device (cold: 3–5 s less)
 CLI_CPU_STREAMS = 1
 
 
@@ -304,9 +305,9 @@ def use_cpu_streams(count: int = CLI_CPU_STREAMS) -> int:
 def stream_devices() -> list:
     """The devices sub-tiles of a reconstruction (and chunks of a simulation) are spread over,
     in turn: every local CPU device where JAX has several (`use_cpu_streams`), else the
-    default device alone. One CPU device runs its programs one at a time, and the serial
-    stretches of a program (the ML polish's Newton loop on a few hundred pixels) leave the
-    other cores idle; two devices run two sub-tiles' programs at once."""
+    default device alone. One CPU device runs its programs one at a time, so where a program
+    has serial stretches that leave cores idle (the simulator's chunks), two devices run two
+    programs at once."""
     import jax
 
     devices = jax.local_devices()

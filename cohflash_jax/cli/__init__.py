@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from ..fileio import OutputSet
-from ..runtime import enable_compilation_cache, use_cpu_streams
+from ..runtime import CLI_CPU_STREAMS, enable_compilation_cache, use_cpu_streams
 from . import (
     calibrate,
     convert,
@@ -41,6 +41,10 @@ COMMANDS = (
     scenes,
     paper_report,
 )
+# JAX CPU devices of a command where not `runtime.CLI_CPU_STREAMS`: the simulator's frame chunks
+# gain from two (one chunk's program leaves a core idle; full traffic capture 28.8–34.5 s against
+# 34.4–43.3 s with one, docs/performance.md); a reconstruction does not
+CPU_STREAMS = {"simulate": 2}
 # commands whose files are committed as they go: the sweep's checkpoint after every chunk of
 # points, the demo's capture (which it then reads), a stream's depth file per capture, the report's
 # figures and tables section by section; every other command's outputs form one set
@@ -67,7 +71,7 @@ def main(argv=None) -> int:
     if getattr(args, "scheduler", None) == "processes":  # the GPUs' memory is the workers', not this process's
         os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     enable_compilation_cache()
-    use_cpu_streams()
+    use_cpu_streams(CPU_STREAMS.get(args.command, CLI_CPU_STREAMS))
     try:
         check_output_paths(args)
         if args.command in WRITES_AS_IT_GOES:
