@@ -18,6 +18,7 @@ import abc
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Complex, Float, Int
@@ -36,31 +37,48 @@ def unitary_rfft(seq: Float[Array, "N P"]) -> Complex[Array, "P K"]:
     return jnp.fft.rfft(seq.T * (1 / math.sqrt(n)), axis=-1)
 
 
-def hann_power(spec: Complex[Array, "P K"], n: int) -> Float[Array, "P K"]:
+def hann_power(spec: Complex[Array, "P K"], n: int, axis: int = -1) -> Float[Array, "P K"]:
     """Power spectrum of the mean-removed, periodic-Hann-windowed sequence, from the
-    unwindowed rFFT bins (last axis).
+    unwindowed rFFT bins (along `axis`).
 
     The periodic Hann window ½ − ½cos(2πm/N) is a 3-tap convolution in frequency,
     H[k] = ½X[k] − ¼(X[k−1] + X[k+1]), evaluated from shifted slices (no concatenation of
     the complex spectrum). Bin 0 (the mean) is set to zero; bins beyond the rFFT's ends
     use X[−k] = conj(X[k])."""
-    k = spec.shape[-1]
-    x1 = spec[..., 1:2]
-    interior = 0.5 * spec[..., 1:-1] - 0.25 * (spec[..., :-2].at[..., 0].set(0) + spec[..., 2:])
-    mirror = spec[..., k - 2 : k - 1] if n % 2 == 0 else spec[..., k - 1 : k]
-    last = 0.5 * spec[..., -1:] - 0.25 * (spec[..., -2:-1] + jnp.conj(mirror))
+    k = spec.shape[axis]
+    at = lambda start, stop: jax.lax.slice_in_dim(spec, start, stop, axis=axis)
+    first_bin = tuple(0 if d == axis % spec.ndim else slice(None) for d in range(spec.ndim))
+    x1 = at(1, 2)
+    interior = 0.5 * at(1, k - 1) - 0.25 * (at(0, k - 2).at[first_bin].set(0) + at(2, k))
+    mirror = at(k - 2, k - 1) if n % 2 == 0 else at(k - 1, k)
+    last = 0.5 * at(k - 1, k) - 0.25 * (at(k - 2, k - 1) + jnp.conj(mirror))
     first = -0.25 * (x1 + jnp.conj(x1))  # mean removed: X[0] = 0
     sq = lambda z: jnp.real(z) ** 2 + jnp.imag(z) ** 2
-    return jnp.concatenate([sq(first), sq(interior), sq(last)], axis=-1)
+    return jnp.concatenate([sq(first), sq(interior), sq(last)], axis=axis)
 
 
-def first_argmax(x: Float[Array, "P K"]) -> Int[Array, " P"]:
-    """`jnp.argmax` along the last axis (first index of the maximum) as two vectorised
-    reductions, a max and a min over indices: XLA's CPU argmax is a variadic reduce that does
-    not vectorise (docs/performance.md). A NaN row gives index 0."""
-    k = x.shape[-1]
-    top = jnp.max(x, axis=-1, keepdims=True)
-    first = jnp.min(jnp.where(x == top, jnp.arange(k, dtype=jnp.int32), k), axis=-1)
+# Sweeps of at most this many frames take their spectrum as one matrix product with the DFT
+# matrix, frames by pixels, and keep the bins on the first axis until the peak is found: an
+# rFFT of a few dozen points along the pixels' last axis, and the window and peak search over
+# ~18 bins there, vectorise poorly on a CPU (docs/performance.md).
+DFT_MATRIX_MAX_FRAMES = 64
+
+
+def unitary_dft_matrix(n: int) -> np.ndarray:
+    """The unitary real DFT of n points as a (2·(n//2 + 1), n) matrix: the rFFT bins' real
+    parts, then their imaginary parts (angles reduced modulo n exactly, in integers)."""
+    angle = 2 * np.pi * ((np.arange(n // 2 + 1)[:, None] * np.arange(n)[None, :]) % n) / n
+    return np.concatenate([np.cos(angle), -np.sin(angle)]) / math.sqrt(n)
+
+
+def first_argmax(x: Float[Array, "P K"], axis: int = -1) -> Int[Array, " P"]:
+    """`jnp.argmax` along `axis` (first index of the maximum) as two vectorised reductions, a
+    max and a min over indices: XLA's CPU argmax is a variadic reduce that does not vectorise
+    (docs/performance.md). A NaN row gives index 0."""
+    k = x.shape[axis]
+    top = jnp.max(x, axis=axis, keepdims=True)
+    index = jnp.expand_dims(jnp.arange(k, dtype=jnp.int32), tuple(range(1, x.ndim - (axis % x.ndim))))
+    first = jnp.min(jnp.where(x == top, index, k), axis=axis)
     return jnp.where(first < k, first, 0)
 
 
@@ -185,9 +203,17 @@ class UniformSpectrum(AbstractCoarseStage):
         return uniform_sums(coarse.spectrum, self.geometry.num_frames)
 
     def __call__(self, sequence) -> CoarseSpectrum:
-        spec = unitary_rfft(sequence)  # (P, K)
-        power = hann_power(spec, sequence.shape[0])
-        return CoarseSpectrum(power, coarse_peak(power, self.min_bin), spec)
+        n = sequence.shape[0]
+        if n > DFT_MATRIX_MAX_FRAMES:
+            spec = unitary_rfft(sequence)  # (P, K)
+            power = hann_power(spec, n)
+            return CoarseSpectrum(power, coarse_peak(power, self.min_bin), spec)
+        k = n // 2 + 1
+        parts = jnp.asarray(unitary_dft_matrix(n), sequence.dtype) @ sequence  # (2K, P)
+        spec = jax.lax.complex(parts[:k], parts[k:])  # (K, P)
+        power = hann_power(spec, n, axis=0)
+        peak = first_argmax(power[self.min_bin :], axis=0) + self.min_bin
+        return CoarseSpectrum(power.T, peak, spec.T)
 
     def depth(self, coarse, interpolate):
         n = self.geometry.num_frames

@@ -169,21 +169,24 @@ def refine_ml_table(
     y64 = r.astype(jnp.float64)
     mean_r = jnp.mean(y64, axis=0)
     y = y64 - mean_r  # (N, P)
-    # 1. basin search: one matrix product (float32 suffices to rank grid points)
-    scores = y.astype(jnp.float32).T @ table.unit_tones  # (P, G)
+    # 1. basin search: one matrix product (float32 suffices to rank grid points), then the
+    # grid points within ±half_width of the coarse depth: a window of at most `width` points
+    scores = table.unit_tones.T @ y.astype(jnp.float32)  # (G, P)
     g_count = table.num_points
     s = table.spacing_m
     lo = jnp.ceil((coarse_depth_m - half_width_m - table.start_m) / s).astype(jnp.int32)
     hi = jnp.floor((coarse_depth_m + half_width_m - table.start_m) / s).astype(jnp.int32)
-    idx = jnp.arange(g_count, dtype=jnp.int32)
-    inside = (idx >= lo[:, None]) & (idx <= hi[:, None])
-    magnitude = jnp.where(inside, jnp.abs(scores), -1.0)
-    best = first_argmax(magnitude)
+    width = int(math.floor(2 * half_width_m / s)) + 2  # the window's points, one to spare for rounding
+    idx = lo[None, :] + jnp.arange(width, dtype=jnp.int32)[:, None]  # (W, P)
+    inside = (idx >= 0) & (idx <= hi[None, :]) & (idx < g_count)
+    window = jnp.take_along_axis(scores, jnp.clip(idx, 0, g_count - 1), axis=0)  # (W, P)
+    pick = lambda k: jnp.where(jnp.any(inside, axis=0), jnp.take_along_axis(idx, k[None, :], axis=0)[0], 0)
+    best = pick(first_argmax(jnp.where(inside, jnp.abs(window), -1.0), axis=0))
     if prefer_positive:
-        signed = jnp.where(inside, scores, -1.0)
-        best_signed = first_argmax(signed)
-        has_positive = jnp.take_along_axis(signed, best_signed[:, None], axis=-1)[:, 0] > 0
-        best = jnp.where(has_positive, best_signed, best)
+        signed = jnp.where(inside, window, -1.0)
+        k_signed = first_argmax(signed, axis=0)
+        has_positive = jnp.take_along_axis(signed, k_signed[None, :], axis=0)[0] > 0
+        best = jnp.where(has_positive, pick(k_signed), best)
     # 2. polish: b(u) = y·t(u) and |t(u)|² are polynomials in u
     rows = jnp.take(table.rows, best, axis=0).astype(jnp.float64)  # (P, K+1, N)
     rows_t = jnp.moveaxis(rows, 1, 0)  # (K+1, P, N)
