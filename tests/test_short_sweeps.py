@@ -6,6 +6,7 @@ exactness across the unambiguous window, and the CRLB in Monte Carlo."""
 import dataclasses
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -267,6 +268,7 @@ def test_two_cpu_streams_give_the_same_bits(comb, tmp_path):
 import numpy as np
 from cohflash_jax.runtime import use_cpu_streams
 assert use_cpu_streams(2) == 2
+import equinox as eqx
 import jax
 import cohflash_jax as cf
 from cohflash_jax.reconstruct import ReconstructOptions, TileDispatcher, build_plan, stream_devices
@@ -281,3 +283,29 @@ np.savez({str(tmp_path / "two.npz")!r}, **out)
     assert set(two.files) == set(one) and one["valid"].sum() > 10
     for key, value in one.items():
         np.testing.assert_array_equal(two[key], value, err_msg=key)
+
+
+@pytest.mark.parametrize("num_frames", [35, 64])
+def test_short_sweep_spectrum_from_the_dft_matrix_matches_numpy(num_frames):
+    """Short sweeps' coarse spectrum is a DFT-matrix product with the bins on the first axis
+    (`coarse.DFT_MATRIX_MAX_FRAMES`): against NumPy's float64 rFFT and an explicit periodic-
+    Hann window, on noisy tones at random frequencies, even and odd N."""
+    from cohflash_jax.estimate.coarse import DFT_MATRIX_MAX_FRAMES, UniformSpectrum
+
+    assert num_frames <= DFT_MATRIX_MAX_FRAMES
+    rng = np.random.default_rng(num_frames)
+    p = 512
+    m = np.arange(num_frames)[:, None]
+    freq = rng.uniform(0.05, 0.45, p)
+    seq = 40 * np.cos(2 * np.pi * freq * m + rng.uniform(0, 2 * np.pi, p)) + 7 + rng.normal(0, 3, (num_frames, p))
+    inst = cf.Instrument(sweep=cf.FrequencySweep.uniform(6e9 / num_frames, 6e9 / num_frames, num_frames))
+    stage = build_plan(inst, ML).coarse
+    assert isinstance(stage, UniformSpectrum)
+    out = eqx.filter_jit(lambda stage, x: stage(x))(stage, jnp.asarray(seq, jnp.float32))
+    spec = np.fft.rfft(seq, axis=0).T / math.sqrt(num_frames)  # (P, K)
+    hann = 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(num_frames) / num_frames)
+    power = np.abs(np.fft.rfft((seq - seq.mean(0)) * hann[:, None], axis=0).T / math.sqrt(num_frames)) ** 2
+    scale = power.max(axis=1, keepdims=True)
+    np.testing.assert_allclose(np.asarray(out.spectrum), spec, atol=2e-6 * np.abs(spec).max())
+    assert np.all(np.abs(np.asarray(out.power) - power) <= 2e-6 * scale)  # each pixel to its peak's power
+    np.testing.assert_array_equal(np.asarray(out.peak), 1 + np.argmax(power[:, 1:], axis=1))
