@@ -72,7 +72,8 @@ def reconstruct_array(
         alignment = CarrierAlignment("common", "given by the caller", np.asarray(carrier_phase_rad, np.float64))
     else:
         alignment = align_carrier(options, instrument, frames.reshape(4, n, h * w), dark, gain)
-    _, dispatcher = plan_and_dispatcher(instrument, options, saturation_dn, alignment, sub_tile_pixels(h * w, n))
+    plan = build_plan(instrument, options, saturation_dn, tracking=alignment.tracking)
+    dispatcher = TileDispatcher(plan, sub_tile_pixels(h * w, n), alignment.phase_rad)
     with quick_compile(h * w <= QUICK_COMPILE_MAX_PIXELS):
         out = dispatcher.dispatch(frames.reshape(4, n, h * w), dark, None, gain).gather()
     return {k: v.reshape(h, w) for k, v in out.items()}
