@@ -283,10 +283,12 @@ class Capture:
         _, n, h, w = frames.shape
         if n < 2 or h < 1 or w < 1:
             self._fail(f"frames shape {frames.shape}: need at least 2 frames and one pixel")
-        if self.store == "zarr":  # a chunk missing from a store would read as zeros
-            written, total = frames.nchunks_initialized, frames.nchunks
-            if written != total:
-                self._fail(f"{total - written} of {total} chunks of frames are missing (deleted, or never written)")
+        if self.store == "zarr":
+            from .capture_zarr import missing_chunks
+
+            missing, total = missing_chunks(frames)
+            if missing:
+                self._fail(f"{missing} of {total} chunks of frames are missing (deleted, or never written)")
         freqs = f["frequencies_hz"]
         if freqs.shape != (n,):
             self._fail(f"frequencies_hz has shape {freqs.shape}, expected ({n},) to match frames")

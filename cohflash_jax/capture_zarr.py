@@ -131,16 +131,22 @@ class ZarrCaptureWriter:
         self.frames[:, frames, rows, :] = block
 
 
+def missing_chunks(array) -> tuple[int, int]:
+    """(chunks absent from the store, chunks in all) of a Zarr array: an absent chunk reads
+    as the fill value, zeros, so a store is complete only when none is absent."""
+    total = array.nchunks
+    return total - array.nchunks_initialized, total
+
+
 def finish_zarr_capture(path) -> Path:
     """Mark a filled capture store complete, after checking that every chunk was written
     (CaptureError naming how many are missing otherwise)."""
     import zarr
 
     path = Path(path)
-    frames = zarr.open_array(path / "frames", mode="r")
-    written, total = frames.nchunks_initialized, frames.nchunks
-    if written != total:
-        raise CaptureError(f"{path}: {total - written} of {total} chunks of frames were never written")
+    missing, total = missing_chunks(zarr.open_array(path / "frames", mode="r"))
+    if missing:
+        raise CaptureError(f"{path}: {missing} of {total} chunks of frames were never written")
     zarr.open_group(path, mode="r+").attrs["complete"] = True
     return path
 

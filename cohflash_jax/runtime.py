@@ -283,7 +283,7 @@ EXECUTABLES = ExecutableCache()
 # CPU devices the CLI asks for, unless a command asks otherwise (`cli.CPU_STREAMS`): one. Two
 # let two sub-tiles' programs run at once, which paid while the ML polish had long serial
 # stretches; measured since (docs/performance.md), one is as fast warm and compiles every
-# program once instead of once per device (cold: 3–5 s less)
+# program once instead of once per device
 CLI_CPU_STREAMS = 1
 
 

@@ -323,8 +323,8 @@ def simulate_to_file(
     from .capture import capture_attributes, write_capture
     from .runtime import retain_freed_memory
 
-    # each chunk's ~20 MB intermediates are reused from the heap instead of mapped afresh:
-    # measured on the traffic scene, 18 s of kernel time (page faults) fell to 1–4 s
+    # each chunk's ~20 MB intermediates are reused from the heap instead of mapped afresh (page
+    # faults were most of the kernel time: docs/performance.md)
     retain_freed_memory()
     effects = scene.effects if effects is None else parse_effects(effects)
     key = jax.random.key(seed)

@@ -42,8 +42,8 @@ COMMANDS = (
     paper_report,
 )
 # JAX CPU devices of a command where not `runtime.CLI_CPU_STREAMS`: the simulator's frame chunks
-# gain from two (one chunk's program leaves a core idle; full traffic capture 28.8–34.5 s against
-# 34.4–43.3 s with one, docs/performance.md); a reconstruction does not
+# gain from two (one chunk's program leaves a core idle; measured in docs/performance.md); a
+# reconstruction does not
 CPU_STREAMS = {"simulate": 2}
 # commands whose files are committed as they go: the sweep's checkpoint after every chunk of
 # points, the demo's capture (which it then reads), a stream's depth file per capture, the report's

@@ -82,9 +82,10 @@ def first_argmax(x: Float[Array, "P K"], axis: int = -1) -> Int[Array, " P"]:
     return jnp.where(first < k, first, 0)
 
 
-def coarse_peak(power: Float[Array, "P K"], min_bin: int = 1) -> Int[Array, " P"]:
-    """Index of the strongest bin at or above `min_bin` (DC leakage lies below)."""
-    return first_argmax(power[..., min_bin:]) + min_bin
+def coarse_peak(power: Float[Array, "P K"], min_bin: int = 1, axis: int = -1) -> Int[Array, " P"]:
+    """Index of the strongest bin at or above `min_bin` (DC leakage lies below), bins along `axis`."""
+    searched = jax.lax.slice_in_dim(power, min_bin, power.shape[axis], axis=axis)
+    return first_argmax(searched, axis=axis) + min_bin
 
 
 def interpolate_peak(power: Float[Array, "P K"], peak: Int[Array, " P"]) -> Float[Array, " P"]:
@@ -212,8 +213,7 @@ class UniformSpectrum(AbstractCoarseStage):
         parts = jnp.asarray(unitary_dft_matrix(n), sequence.dtype) @ sequence  # (2K, P)
         spec = jax.lax.complex(parts[:k], parts[k:])  # (K, P)
         power = hann_power(spec, n, axis=0)
-        peak = first_argmax(power[self.min_bin :], axis=0) + self.min_bin
-        return CoarseSpectrum(power.T, peak, spec.T)
+        return CoarseSpectrum(power.T, coarse_peak(power, self.min_bin, axis=0), spec.T)
 
     def depth(self, coarse, interpolate):
         n = self.geometry.num_frames

@@ -180,7 +180,8 @@ def refine_ml_table(
     idx = lo[None, :] + jnp.arange(width, dtype=jnp.int32)[:, None]  # (W, P)
     inside = (idx >= 0) & (idx <= hi[None, :]) & (idx < g_count)
     window = jnp.take_along_axis(scores, jnp.clip(idx, 0, g_count - 1), axis=0)  # (W, P)
-    pick = lambda k: jnp.where(jnp.any(inside, axis=0), jnp.take_along_axis(idx, k[None, :], axis=0)[0], 0)
+    found = jnp.any(inside, axis=0)  # an empty window (no finite coarse depth) picks point 0, as a full mask did
+    pick = lambda k: jnp.where(found, jnp.take_along_axis(idx, k[None, :], axis=0)[0], 0)
     best = pick(first_argmax(jnp.where(inside, jnp.abs(window), -1.0), axis=0))
     if prefer_positive:
         signed = jnp.where(inside, window, -1.0)
