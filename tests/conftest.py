@@ -3,6 +3,7 @@
 import os
 import shutil
 import tempfile
+import warnings
 from pathlib import Path
 
 import jax
@@ -54,6 +55,24 @@ def simulate_pixels(paper_instrument):
         return cf.simulate(scene, inst, *PIXELS, jax.random.key(seed))
 
     return run
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config, items):
+    """`--dist loadgroup` keeps a module's tests on one worker by suffixing their ids with the
+    `xdist_group` name; where a pytest/xdist pair stops doing so (pytest-dev/pytest-xdist#1386)
+    every costly module fixture is built once per worker, and the suite's time nearly doubles
+    without a failure: say so."""
+    if not (os.environ.get("PYTEST_XDIST_WORKER") and getattr(config.option, "loadgroup", False)):
+        return
+    lost = [item.nodeid for item in items if item.get_closest_marker("xdist_group") and "@" not in item.nodeid]
+    if lost:
+        warnings.warn(
+            f"--dist loadgroup did not group {len(lost)} tests marked xdist_group (e.g. {lost[0]}): "
+            "their module fixtures are built on each worker; pytest-xdist#1386, pin pytest<9.2",
+            pytest.PytestWarning,
+            stacklevel=1,
+        )
 
 
 def pytest_sessionfinish(session):
