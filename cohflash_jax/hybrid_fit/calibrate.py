@@ -174,25 +174,28 @@ def calibrate_hybrid(
                 "turbulent capture whose drift is missed cannot be calibrated"
             )
             raise CaptureError(f"{capture_path}: only {good.size} of {p} pixels reconstruct validly: {why}")
-        tone = tone_sequences(freqs, 2 * depth / C, modulator)
-        sub, tone_g = data[:, :, good], tone[:, good]
+        # every selected pixel stays in the arrays, those that did not fit weighted out: the
+        # programs keep one shape per capture size, so a later capture (or a later pass, where
+        # another count fits) loads them from the compile cache instead of compiling anew
+        usable = status == Status.OK
+        tone = tone_sequences(freqs, 2 * np.where(usable, depth, np.median(depth[good])) / C, modulator)
         for _ in range(inner_iterations):  # alternate: hybrid given the drift, drift given the hybrid
-            stats = pixel_statistics(sub, tone_g * u[:, None])
-            fit = fit_hybrid(stats, nominal, params)
+            stats = pixel_statistics(data, tone * u[:, None])
+            fit = fit_hybrid(stats, nominal, params, usable)
             params = fit.params
             hybrid_h = jnp.asarray(0.5 * fit.relative_gains * np.exp(1j * fit.phases_rad))
             if drifting:
-                u = common_carrier(sub, hybrid_h, jnp.asarray(fit.amplitudes), tone_g, stats["noise_var"])
+                # the pixels weighted out have zero amplitudes: they add nothing
+                u = common_carrier(data, hybrid_h, jnp.asarray(fit.amplitudes), tone, stats["noise_var"])
         if drifting:
             drift = np.unwrap(np.angle(np.asarray(u)))
             drift = drift - np.mean(drift)
         # stage 2 on the strongest pixels, with the current hybrid and drift
         if fit.identified:
-            offsets = fit_offsets(port_means[:, good], stats, fit, None)[0]
+            offsets = fit_offsets(port_means, stats, fit, None)[0]
             hybrid = Hybrid(tuple(fit.phases_rad), tuple(fit.relative_gains), tuple(offsets))
         r, noise_var = aligned_sequences(hybrid, drift, fit.identified)
-        amp = np.zeros(p)
-        amp[good] = np.abs(fit.amplitudes)
+        amp = np.abs(fit.amplitudes)  # zero where a pixel is weighted out
         strongest = good[np.argsort(-amp[good])][:modulator_pixels]
         # under a drift, the σ of the last pass also from a block jackknife over the frames
         blocks = MODULATOR_JACKKNIFE_BLOCKS if drifting and last_pass else None
@@ -227,7 +230,7 @@ def calibrate_hybrid(
                 mod_fit, modulation_index=Estimate(None, None, why), rolloff_3db_hz=Estimate(None, None, why)
             )
             modulator = instrument.modulator
-    offsets, offset_sigma, offset_note = fit_offsets(port_means[:, good], stats, fit, dark)
+    offsets, offset_sigma, offset_note = fit_offsets(port_means, stats, fit, dark)
     if fit.identified:
         hybrid = Hybrid(tuple(fit.phases_rad), tuple(fit.relative_gains), tuple(offsets))
     depth, status = reconstruct_selected(hybrid, modulator, drift)
@@ -245,7 +248,11 @@ def calibrate_hybrid(
         # the window fit's depths refined with the sideband weights at every frequency: their
         # mean is what τ_sys needs to a fraction of its σ (`exact_model_depths_m`)
         r, _ = aligned_sequences(hybrid, drift, fit.identified)
-        d = exact_model_depths_m(freqs, r[:, ok], depth[ok], modulator, float(instrument.system_delay_s))
+        # every pixel, those that did not fit from a finite stand-in depth, then the fitted ones
+        # kept (one program shape per capture size, as above)
+        d = exact_model_depths_m(
+            freqs, r, np.where(ok, depth, np.median(depth[ok])), modulator, float(instrument.system_delay_s)
+        )[ok]
         delay_est = Estimate(
             float(2 * (np.mean(d) - known_distance_m) / C), float(2 * np.std(d, ddof=1) / math.sqrt(d.size) / C)
         )
@@ -304,7 +311,7 @@ def calibrate_hybrid(
         },
         "maps": sorted(maps),
     }
-    strongest = int(good[np.argmax(np.abs(fit.amplitudes))]) if fit.amplitudes.size else 0
+    strongest = int(np.argmax(np.abs(fit.amplitudes)))  # zero where a pixel is weighted out
     calibrated = Hybrid(hybrid.phases_rad, hybrid.relative_gains, (0.0,) * 4)
     views = {}
     for name, hyb in (("nominal", Hybrid(tuple(nominal))), ("calibrated", calibrated)):

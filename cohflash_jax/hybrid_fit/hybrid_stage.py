@@ -75,10 +75,11 @@ def _solve_2x2(m, y):
 
 
 def hybrid_residuals(params, args):
-    nominal_rad, stats = args
+    """Whitened residuals (8 a pixel), zero for the pixels weighted out (`used` 0)."""
+    nominal_rad, stats, used = args
     m, y = _hybrid_design(nominal_rad, params, stats)
     z = _solve_2x2(m, y)
-    return (jnp.einsum("paj,pj->pa", m, z) - y).reshape(-1)
+    return ((jnp.einsum("paj,pj->pa", m, z) - y) * used[:, None]).reshape(-1)
 
 
 def pixel_amplitudes(nominal_rad, params, stats):
@@ -98,7 +99,8 @@ def common_carrier(frames, hybrid_h, amplitudes, tone, noise_var, step_var_rad2=
     along κ/S[m] when the pixels share one depth, so a random-walk prior with step variance
     `step_var_rad2` per frame (Σ|u[m+1] − u[m]|²/step_var added to the χ²) makes it a MAP
     estimate, which also smooths u where the tones pass through zero. Solved by conjugate
-    gradients (u as real pairs, per-frame 2×2 blocks as preconditioner)."""
+    gradients (u as real pairs, per-frame 2×2 blocks as preconditioner). A pixel of zero
+    amplitude (one `fit_hybrid` did not use) adds nothing."""
     c = hybrid_h[:, None, None] * amplitudes[None, None, :] * tone[None]  # (4, N, P)
     wgt = (1 / noise_var)[:, None, :]
     centred = frames - jnp.mean(frames, axis=1, keepdims=True)
@@ -143,21 +145,25 @@ class HybridFit:
     note: str | None
     params: np.ndarray
     nominal_rad: np.ndarray
+    used: np.ndarray  # (P,) bool: the pixels fitted (amplitudes are zero elsewhere)
 
 
-def fit_hybrid(stats: dict, nominal_rad, start=None) -> HybridFit:
-    """Stage 1: per-CCD phase errors and gains (gauge CCD 1) from the pixel statistics."""
+def fit_hybrid(stats: dict, nominal_rad, start=None, used=None) -> HybridFit:
+    """Stage 1: per-CCD phase errors and gains (gauge CCD 1) from the pixel statistics of the
+    pixels `used` (P,) bool (all by default; the others are weighted out, not dropped, so that
+    the programs keep the arrays' shapes whatever the count)."""
     nominal = jnp.asarray(nominal_rad, jnp.float64)
-    args = (nominal, stats)
+    rank = np.asarray(stats["rank"])
+    used = np.ones(rank.shape, bool) if used is None else np.asarray(used, bool)
+    args = (nominal, stats, jnp.asarray(used, jnp.float64))
     solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12)
     y0 = jnp.zeros(6) if start is None else jnp.asarray(start, jnp.float64)
     sol = optx.least_squares(hybrid_residuals, solver, y0, args=args, max_steps=200, throw=False)
     params = sol.value
-    rank = np.asarray(stats["rank"])
-    dof = int(4 * rank.sum() - 2 * rank.size - 6)
+    dof = int(4 * rank[used].sum() - 2 * used.sum() - 6)
     cov, chi2, singular, _ = covariance(hybrid_residuals, params, args, dof)
     sig = np.sqrt(np.maximum(np.diag(cov), 0))
-    z = np.asarray(pixel_amplitudes(nominal, params, stats))
+    z = np.where(used, np.asarray(pixel_amplitudes(nominal, params, stats)), 0.0)
     note = None
     singular = singular or not np.all(np.isfinite(sig))
     phase_sig, gain_sig = sig[:3], np.exp(np.asarray(params[3:])) * sig[3:]
@@ -195,20 +201,22 @@ def fit_hybrid(stats: dict, nominal_rad, start=None) -> HybridFit:
         note,
         np.asarray(params),
         np.asarray(nominal),
+        used,
     )
 
 
 def fit_offsets(port_means_dn, stats: dict, fit: HybridFit, dark_dn: np.ndarray | None):
-    """Offsets o_k (DN) from the per-pixel means after removing each port's modelled tone mean.
+    """Offsets o_k (DN) from the per-pixel means (4, P) of the pixels the fit used, after removing
+    each port's modelled tone mean.
 
     Only o_k − g_k·o_1 is observable; o_1 comes from the dark frame when given, else the
     gauge o_1 = 0 (the I/Q combination cancels any offset ∝ g_k, so depth is unaffected)."""
     h = np.asarray(_hybrid_matrices(jnp.asarray(fit.nominal_rad), jnp.asarray(fit.params)))
-    z = np.stack([fit.amplitudes.real, fit.amplitudes.imag], -1)  # (P, 2)
-    s_mean = np.asarray(stats["s_mean"])
+    z = np.stack([fit.amplitudes.real, fit.amplitudes.imag], -1)[fit.used]  # (P used, 2)
+    s_mean = np.asarray(stats["s_mean"])[fit.used]
     s_vec = np.stack([s_mean.real, s_mean.imag], -1)  # (P, 2)
     tone_mean = np.einsum("kij,pj,pi->kp", h, z, s_vec)
-    level = np.asarray(port_means_dn) - tone_mean  # o_k + g_k·L_p
+    level = np.asarray(port_means_dn)[:, fit.used] - tone_mean  # o_k + g_k·L_p
     g = fit.relative_gains
     per_pixel = level - g[:, None] * level[:1]  # o_k − g_k·o_1
     n = per_pixel.shape[1]
