@@ -57,12 +57,23 @@ def simulate_pixels(paper_instrument):
     return run
 
 
+def pytest_configure(config):
+    config.addinivalue_line(
+        "markers", "runs_long: one of the suite's slowest tests (≥ ~30 s on 2 cores); scheduled first"
+    )
+
+
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(config, items):
-    """`--dist loadgroup` keeps a module's tests on one worker by suffixing their ids with the
+    """The slowest tests (`runs_long`) first: xdist hands out grouped modules first and then
+    single tests in collection order, so a long test collected last (test_uncertainty,
+    test_report) would run alone at the end while the other worker idles.
+
+    `--dist loadgroup` keeps a module's tests on one worker by suffixing their ids with the
     `xdist_group` name; where a pytest/xdist pair stops doing so (pytest-dev/pytest-xdist#1386)
     every costly module fixture is built once per worker, and the suite's time nearly doubles
     without a failure: say so."""
+    items.sort(key=lambda item: item.get_closest_marker("runs_long") is None)  # stable: the rest keep their order
     if not (os.environ.get("PYTEST_XDIST_WORKER") and getattr(config.option, "loadgroup", False)):
         return
     lost = [item.nodeid for item in items if item.get_closest_marker("xdist_group") and "@" not in item.nodeid]

@@ -147,6 +147,7 @@ def test_capture_describes_its_instrument_and_a_calibration_applies_to_it(tmp_pa
         Capture(path)
 
 
+@pytest.mark.runs_long
 @pytest.mark.filterwarnings("ignore:not converged")
 def test_uncertainty_and_reconstruct_agree_under_the_same_calibration(tmp_path, capsys):
     """A capture with a system delay (0.6 m of path) and hybrid errors, one calibration file:

@@ -434,6 +434,7 @@ def test_polish_converges_in_few_newton_steps_and_never_reports_a_maximum_as_con
     assert abs(float(value) - np.pi) < 1e-6 and bool(ok & descended(jnp.cos(value), np.cos(2.5)))
 
 
+@pytest.mark.runs_long
 def test_straggler_pass_gives_each_pixel_its_uninterrupted_polish():
     """The polish runs every pixel for a few Newton steps, then resumes the stragglers a few at
     a time (`refine_ml_uniform`). Each pixel must end exactly as an uninterrupted polish ends

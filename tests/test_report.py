@@ -4,9 +4,12 @@ number in the report's tables is finite, and the paper's numbers stand beside ou
 import csv
 import math
 
+import pytest
+
 from cohflash_jax.cli import main
 
 
+@pytest.mark.runs_long
 def test_quick_report_writes_every_figure_and_table_with_finite_numbers(tmp_path):
     out = tmp_path / "report"
     assert main(["report", "--out", str(out), "--quick"]) == 0

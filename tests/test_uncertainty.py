@@ -20,6 +20,7 @@ def _posteriors(inst, frames, max_steps=20000, seed=0):
     return sample_pixels(inst, frames, rng=np.random.default_rng(seed), max_steps=max_steps, quiet=False)
 
 
+@pytest.mark.runs_long
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")
 def test_high_snr_intervals_cover_at_nominal_rates_with_crlb_widths(paper_instrument):
     """100 pixels of the planar target at the paper's link budget: 68 % and 95 % intervals cover
@@ -39,6 +40,7 @@ def test_high_snr_intervals_cover_at_nominal_rates_with_crlb_widths(paper_instru
     assert all(0.2 < p.acceptance < 0.8 for p in posts)
 
 
+@pytest.mark.runs_long
 @pytest.mark.filterwarnings("ignore::RuntimeWarning", "ignore::UserWarning")
 def test_near_threshold_multimodality_is_detected_and_intervals_widen():
     """24–30 GHz: ripples (5.6 mm) much narrower than the envelope; near the threshold the
