@@ -12,8 +12,9 @@ direction whenever the window excludes the DC bin. The depth prior is uniform ov
 bins around the ML estimate (the window's reach) within [0, ambiguity).
 
 Speed: the tone's window T(depth) is tabulated once per pixel on a grid fine enough for
-linear interpolation to be exact to ~1e-7 of its amplitude; each emcee call then costs a
-gather and a few NumPy vector operations for all walkers (`vectorize=True`).
+linear interpolation to be exact to ~1e-7 of its amplitude, and reduced to the few dot products
+the χ² needs (`_dot_tables`); each emcee call then costs a gather of those and a few NumPy
+vector operations for all walkers (`vectorize=True`).
 """
 
 from __future__ import annotations
@@ -83,26 +84,49 @@ def _tone_table(model: UniformModel, k0, depths_m, width: int):
     return tone, model.dc_column(tables), bin_weights(tables, model.num_frames)
 
 
-def _log_posterior(
-    table, dc, omega4, y, noise_var, table_start_mm, table_step_mm, ml_depth_m, depth_half_range_m, ambiguity_m, thetas
-):
-    """Log-posterior of walkers `thetas` (B, 3); the amplitude is in the units of `y`;
-    `omega4` are the bin weights tiled over the four stacked parts (Re/Im of r and q).
+def _dot_tables(table, dc, omega, r_window, q_window) -> dict:
+    """What the log-posterior needs of a pixel, as dot products on the depth grid.
 
-    NumPy, not jitted JAX: emcee calls it twice a step on ~16 walkers × 68 numbers, where a
-    jitted call's dispatch and transfer cost far more than the microseconds of work
-    (docs/performance.md)."""
+    Stack each window's real and imaginary parts, weighted by the bin weights: the tone rows
+    t_g (G, 2W), the DC column d, and the data y_r (of r) and y_q (of q). The model at a walker
+    is, for r, c·A·t(u) and for q, s·A·t(u) (c, s = cos, sin δφ), with t(u) linear in the grid
+    between rows i and i+1, and the offset projected out along (c·d, s·d). So its χ² needs only
+    t_g·y_r, t_g·y_q, t_g·d, |t_g|², t_g·t_{g+1} and the data's own products: a handful of
+    gathered numbers a walker instead of (B, 4W) arrays (emcee calls it twice a step)."""
+    weight = np.tile(np.asarray(omega, np.float64), 2)
+    parts = lambda z: np.concatenate([np.real(z), np.imag(z)], axis=-1) * weight
+    t, d, y_r, y_q = parts(np.asarray(table)), parts(np.asarray(dc)), parts(r_window), parts(q_window)
+    rows = np.stack([t @ y_r, t @ y_q, t @ d, np.sum(t * t, axis=-1)], axis=-1)
+    return {
+        # (G, 5): t_g·y_r, t_g·y_q, t_g·d, |t_g|², t_g·t_{g+1} (one gather a walker and row)
+        "rows": np.concatenate([rows, np.append(np.sum(t[:-1] * t[1:], axis=-1), 0.0)[:, None]], axis=-1),
+        "yy": float(y_r @ y_r + y_q @ y_q),
+        "yd_r": float(y_r @ d),
+        "yd_q": float(y_q @ d),
+        "dd": float(d @ d),
+    }
+
+
+def _log_posterior(dots, noise_var, table_start_mm, table_step_mm, ml_depth_m, depth_half_range_m, ambiguity_m, thetas):
+    """Log-posterior of walkers `thetas` (B, 3) from a pixel's `_dot_tables`; the amplitude is
+    in the units of the data.
+
+    NumPy, not jitted JAX: emcee calls it twice a step on ~16 walkers, where a jitted call's
+    dispatch and transfer cost far more than the microseconds of work (docs/performance.md)."""
     offset_mm, amp, dphi = thetas[:, 0], thetas[:, 1], thetas[:, 2]
     pos = (offset_mm - table_start_mm) / table_step_mm
-    idx = np.clip(np.floor(pos).astype(int), 0, table.shape[0] - 2)
-    frac = (pos - idx)[:, None]
-    tone = (1 - frac) * table[idx] + frac * table[idx + 1]  # (B, W)
-    m = amp[:, None] * tone
-    c, s = np.cos(dphi)[:, None], np.sin(dphi)[:, None]
-    stack = lambda a, b: np.concatenate([np.real(a), np.imag(a), np.real(b), np.imag(b)], axis=-1) * omega4
-    e = y[None, :] - stack(c * m, s * m)
-    col = stack(c * dc[None, :], s * dc[None, :])
-    e = e - col * (np.sum(col * e, axis=-1) / (np.sum(col * col, axis=-1) + 1e-300))[:, None]
+    idx = np.clip(np.floor(pos).astype(int), 0, dots["rows"].shape[0] - 2)
+    f = pos - idx
+    g = 1 - f
+    lo, hi = dots["rows"][idx], dots["rows"][idx + 1]  # (B, 5) each
+    my_r, my_q, md = (amp[:, None] * (g[:, None] * lo[:, :3] + f[:, None] * hi[:, :3])).T
+    mm = amp * amp * (g * g * lo[:, 3] + 2 * f * g * lo[:, 4] + f * f * hi[:, 3])
+    c, s = np.cos(dphi), np.sin(dphi)
+    unit = c * c + s * s
+    # |y − model|², then the offset's column (c·d, s·d) projected out
+    ee = dots["yy"] - 2 * (c * my_r + s * my_q) + unit * mm
+    ce = c * dots["yd_r"] + s * dots["yd_q"] - unit * md
+    chi2 = ee - ce * ce / (unit * dots["dd"] + 1e-300)
     depth = ml_depth_m + 1e-3 * offset_mm
     ok = (
         (amp >= 0)
@@ -111,7 +135,7 @@ def _log_posterior(
         & (depth >= 0)
         & (depth < ambiguity_m)
     )
-    return np.where(ok, -np.sum(e * e, axis=-1) / noise_var, -np.inf)
+    return np.where(ok, -chi2 / noise_var, -np.inf)
 
 
 def make_log_prob(
@@ -125,16 +149,9 @@ def make_log_prob(
     table, dc, omega = _tone_table(
         model, data.k0, data.ml_depth_m + 1e-3 * jnp.asarray(grid), int(data.r_window.shape[0])
     )
-    omega4 = np.tile(np.asarray(omega), 4)  # once per pixel, not per emcee call
-    y = (
-        np.concatenate([np.real(data.r_window), np.imag(data.r_window), np.real(data.q_window), np.imag(data.q_window)])
-        * omega4
-    )
+    dots = _dot_tables(table, dc, omega, np.asarray(data.r_window), np.asarray(data.q_window))
     args = (
-        np.asarray(table),
-        np.asarray(dc),
-        omega4,
-        y,
+        dots,
         float(data.noise_var),
         float(grid[0]),
         float(step_mm),
