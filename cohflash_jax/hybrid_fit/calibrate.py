@@ -175,8 +175,9 @@ def calibrate_hybrid(
             )
             raise CaptureError(f"{capture_path}: only {good.size} of {p} pixels reconstruct validly: {why}")
         # every selected pixel stays in the arrays, those that did not fit weighted out: the
-        # programs keep one shape per capture size, so a later capture (or a later pass, where
-        # another count fits) loads them from the compile cache instead of compiling anew
+        # programs' shapes depend only on the number selected (`max_pixels` where a capture has
+        # that many usable pixels), so a later capture (or a later pass, where another count
+        # fits) loads them from the compile cache instead of compiling anew
         usable = status == Status.OK
         tone = tone_sequences(freqs, 2 * np.where(usable, depth, np.median(depth[good])) / C, modulator)
         for _ in range(inner_iterations):  # alternate: hybrid given the drift, drift given the hybrid
@@ -249,7 +250,7 @@ def calibrate_hybrid(
         # mean is what τ_sys needs to a fraction of its σ (`exact_model_depths_m`)
         r, _ = aligned_sequences(hybrid, drift, fit.identified)
         # every pixel, those that did not fit from a finite stand-in depth, then the fitted ones
-        # kept (one program shape per capture size, as above)
+        # kept (the programs' shapes fixed, as above)
         d = exact_model_depths_m(
             freqs, r, np.where(ok, depth, np.median(depth[ok])), modulator, float(instrument.system_delay_s)
         )[ok]
