@@ -59,7 +59,7 @@ def simulate_pixels(paper_instrument):
 
 def pytest_configure(config):
     config.addinivalue_line(
-        "markers", "runs_long: one of the suite's slowest tests (≥ ~30 s on 2 cores); scheduled first"
+        "markers", "runs_long: one of the suite's slowest tests (20–95 s on 2 cores); scheduled first"
     )
 
 
@@ -71,8 +71,7 @@ def pytest_collection_modifyitems(config, items):
 
     `--dist loadgroup` keeps a module's tests on one worker by suffixing their ids with the
     `xdist_group` name; where a pytest/xdist pair stops doing so (pytest-dev/pytest-xdist#1386)
-    every costly module fixture is built once per worker, and the suite's time nearly doubles
-    without a failure: say so."""
+    every costly module fixture is built once per worker, without a failure: say so."""
     items.sort(key=lambda item: item.get_closest_marker("runs_long") is None)  # stable: the rest keep their order
     if not (os.environ.get("PYTEST_XDIST_WORKER") and getattr(config.option, "loadgroup", False)):
         return

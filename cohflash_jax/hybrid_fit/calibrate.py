@@ -40,6 +40,17 @@ def _select_pixels(capture: Capture, max_pixels: int, snr_map: np.ndarray, statu
     return np.sort(idx)
 
 
+def stand_in_depths(depth_m: np.ndarray, fitted: np.ndarray) -> np.ndarray:
+    """`depth_m` with the pixels that did not fit given the fitted pixels' median: finite values.
+
+    Every selected pixel stays in the calibration's arrays, those that did not fit weighted out
+    (`fit_hybrid`'s `used`) or their results left unread: the programs' shapes then depend only
+    on the number of pixels selected (`max_pixels` where a capture has that many usable ones),
+    so a later capture, or a later pass where another count fits, loads them from the compile
+    cache instead of compiling anew."""
+    return np.where(fitted, depth_m, np.median(depth_m[fitted]))
+
+
 def _gather(capture: Capture, flat_idx: np.ndarray) -> np.ndarray:
     """Frames (4, N, P) float64 of the chosen pixels, read row by row."""
     n, h, w = capture.shape
@@ -174,12 +185,8 @@ def calibrate_hybrid(
                 "turbulent capture whose drift is missed cannot be calibrated"
             )
             raise CaptureError(f"{capture_path}: only {good.size} of {p} pixels reconstruct validly: {why}")
-        # every selected pixel stays in the arrays, those that did not fit weighted out: the
-        # programs' shapes depend only on the number selected (`max_pixels` where a capture has
-        # that many usable pixels), so a later capture (or a later pass, where another count
-        # fits) loads them from the compile cache instead of compiling anew
         usable = status == Status.OK
-        tone = tone_sequences(freqs, 2 * np.where(usable, depth, np.median(depth[good])) / C, modulator)
+        tone = tone_sequences(freqs, 2 * stand_in_depths(depth, usable) / C, modulator)
         for _ in range(inner_iterations):  # alternate: hybrid given the drift, drift given the hybrid
             stats = pixel_statistics(data, tone * u[:, None])
             fit = fit_hybrid(stats, nominal, params, usable)
@@ -249,11 +256,7 @@ def calibrate_hybrid(
         # the window fit's depths refined with the sideband weights at every frequency: their
         # mean is what τ_sys needs to a fraction of its σ (`exact_model_depths_m`)
         r, _ = aligned_sequences(hybrid, drift, fit.identified)
-        # every pixel, those that did not fit from a finite stand-in depth, then the fitted ones
-        # kept (the programs' shapes fixed, as above)
-        d = exact_model_depths_m(
-            freqs, r, np.where(ok, depth, np.median(depth[ok])), modulator, float(instrument.system_delay_s)
-        )[ok]
+        d = exact_model_depths_m(freqs, r, stand_in_depths(depth, ok), modulator, float(instrument.system_delay_s))[ok]
         delay_est = Estimate(
             float(2 * (np.mean(d) - known_distance_m) / C), float(2 * np.std(d, ddof=1) / math.sqrt(d.size) / C)
         )
