@@ -110,11 +110,11 @@ def timed(fn, *args, repeats=5):
     for _ in range(repeats):
         t = time.perf_counter(); jax.block_until_ready(fn(*args)); best.append(time.perf_counter() - t)
     return float(np.median(best)) * (h * w) / sub
-i, q, flags = programs.iq_and_checks(plan, frames, dark)
+i, q, flags = programs.iq_and_checks(plan.iq, frames, dark)
 c, s, noise_var, total_var = programs.carrier_axis_program(i, q)
 r = programs.rotate_program(i, q, c, s)
 stages = {
-    "I/Q and data checks": timed(programs.iq_and_checks, plan, frames, dark),
+    "I/Q and data checks": timed(programs.iq_and_checks, plan.iq, frames, dark),
     "carrier axis": timed(programs.carrier_axis_program, i, q),
     "rotation": timed(programs.rotate_program, i, q, c, s),
     "coarse stage (FFT, detection)": timed(coarse, plan, r),

@@ -84,3 +84,34 @@ def test_quick_compiled_programs_are_kept_apart_and_agree_with_optimised_ones():
     np.testing.assert_array_equal(optimised["fit_status"], quick["fit_status"])
     assert optimised["valid"].all()
     assert np.max(np.abs(optimised["depth_m"] - quick["depth_m"]) / optimised["sigma_m"]) < 1e-3
+
+
+def test_small_captures_of_one_bucket_and_methods_of_one_capture_share_programs():
+    """A region of interest is padded to its pixel bucket (`engine.pixel_bucket`), so captures
+    of 5×5 and 6×6 pixels run the same programs; and the I/Q programs take the plan's I/Q stage
+    alone, so a second method on the same capture makes its inversion program only. The padded
+    pixels change nothing: the 5×5 capture's depths equal those of its pixels reconstructed
+    within a larger one."""
+    import jax
+
+    import cohflash_jax as cf
+    from cohflash_jax.reconstruct import ReconstructOptions, reconstruct_array
+    from cohflash_jax.reconstruct.engine import pixel_bucket
+    from cohflash_jax.runtime import EXECUTABLES
+
+    assert [pixel_bucket(p) for p in (1, 25, 36, 64, 65, 200)] == [64, 64, 64, 64, 128, 256]
+    made = lambda: EXECUTABLES.compiled + EXECUTABLES.loaded
+    inst = cf.Instrument.paper(96)
+    frames = np.asarray(
+        cf.simulate(cf.planar(12.0, 0.9, effects=("shot_noise", "read_noise")), inst, 6, 6, jax.random.key(7))
+    )
+    dft = ReconstructOptions(method="dft", progress=False)
+    six = reconstruct_array(frames, inst, dft)
+    before = made()
+    five = reconstruct_array(np.ascontiguousarray(frames[..., :5, :5]), inst, dft)
+    assert made() == before, "a 5×5 capture made programs of its own after a 6×6 one"
+    for name in ("depth_m", "sigma_m", "fit_status"):
+        np.testing.assert_array_equal(five[name], six[name][:5, :5])
+    before = made()
+    reconstruct_array(frames, inst, ReconstructOptions(method="interp", progress=False))
+    assert made() == before + 1, "a second method made more than its inversion program"

@@ -35,14 +35,25 @@ DEVICE_PIECE_BYTES = 256 * 2**20
 BUFFER_ALIGNMENT_BYTES = 64  # JAX aliases (does not copy) host buffers aligned so on the CPU
 
 
+# A capture smaller than a sub-tile is padded to a power of two of at least this many pixels:
+# regions of interest of different sizes then share compiled programs (one per bucket, not
+# one per pixel count), for at most twice the compute of a capture that is small anyway
+MIN_PIXEL_BUCKET = 64
+
+
+def pixel_bucket(num_pixels: int) -> int:
+    """The padded pixel count of a small capture: the next power of two, at least `MIN_PIXEL_BUCKET`."""
+    return max(MIN_PIXEL_BUCKET, 1 << (max(1, num_pixels) - 1).bit_length())
+
+
 def sub_tile_pixels(num_pixels: int, num_frames: int, platform: str | None = None) -> int:
-    """Pixels per dispatched sub-tile on `platform` (default: JAX's default backend)."""
+    """Pixels per dispatched sub-tile on `platform` (default: JAX's default backend); a capture
+    smaller than one sub-tile is padded to its `pixel_bucket`."""
     if (platform or jax.default_backend()) != "cpu":
         return int(max(1, min(num_pixels, DEVICE_PIECE_BYTES // (8 * max(1, num_frames)))))
     by_memory = SUB_TILE_CACHE_BYTES // (8 * max(1, num_frames))
-    return int(
-        max(1, min(num_pixels, by_memory, MAX_SUB_TILE_PIXELS, max(MIN_SUB_TILE_PIXELS, -(-num_pixels // MIN_PIECES))))
-    )
+    limit = min(by_memory, MAX_SUB_TILE_PIXELS, max(MIN_SUB_TILE_PIXELS, -(-num_pixels // MIN_PIECES)))
+    return int(max(1, min(pixel_bucket(num_pixels), limit)))
 
 
 def aligned_copy(view: np.ndarray, width: int) -> np.ndarray:
@@ -87,7 +98,7 @@ class TileDispatcher:
     def dispatch(self, frames, dark=None, data_status=None, gain=None) -> PendingTile:
         """Dispatch a tile (4, N, P) with its per-pixel maps (4, P) and upstream status (P,)."""
         p = frames.shape[-1]
-        sub = p if self.sub_px is None else min(self.sub_px, p)
+        sub = self.sub_px or p  # a sub-tile larger than the tile pads it (`pixel_bucket`)
         several = len(self.devices) > 1
 
         def piece(arr, k, device):

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from ..estimate.iq import carrier_axis, derotate, iq_from_frames, rotate_onto_axis, track_carrier_drift
 from ..fisher import reported_sigma_m
 from ..runtime import async_filter_jit
-from .plan import TilePlan
+from .plan import IQStage, TilePlan
 from .policy import MAX_FIT_EXCURSION_BINS, classify
 
 SPLIT_AXIS_MIN_FRAMES = 512
@@ -29,10 +29,10 @@ def process_tile(plan: TilePlan, frames, dark, data_status=None, gain=None, carr
     `carrier_phase_rad` (N,): a known carrier drift common to all pixels, removed first.
     Three or four programs, dispatched asynchronously (none waits for its result)."""
     if frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES:
-        i, q, flags = iq_and_checks(plan, frames, dark, gain, carrier_phase_rad)
+        i, q, flags = iq_and_checks(plan.iq, frames, dark, gain, carrier_phase_rad)
         c, s, noise_var, total_var = carrier_axis_program(i, q)
     else:
-        i, q, (c, s, noise_var, total_var), flags = iq_and_carrier_axis(plan, frames, dark, gain, carrier_phase_rad)
+        i, q, (c, s, noise_var, total_var), flags = iq_and_carrier_axis(plan.iq, frames, dark, gain, carrier_phase_rad)
     return invert_sequence(plan, rotate_program(i, q, c, s), noise_var, total_var, flags, data_status)
 
 
@@ -49,10 +49,10 @@ def _axis(i, q):
 carrier_axis_program = async_filter_jit(_axis)
 
 
-def _checks_and_iq(plan: TilePlan, frames, dark, gain=None, carrier_phase_rad=None):
+def _checks_and_iq(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=None):
     """Data checks and I/Q: frames (4, N, P) → I, Q (N, P) (drift removed where asked) and the
-    data flags (dead, saturated, finite), each (P,)."""
-    stage = plan.iq
+    data flags (dead, saturated, finite), each (P,). It takes the plan's I/Q stage alone, so
+    plans that differ only beyond it (another method, sweep geometry or policy) share it."""
     real = jnp.float64 if stage.dtype == "float64" else jnp.float32
     high, low = jnp.max(frames, axis=1), jnp.min(frames, axis=1)  # (4, P)
     dead = jnp.any(high == low, axis=0)
@@ -76,10 +76,10 @@ iq_and_checks = async_filter_jit(_checks_and_iq)
 
 
 @async_filter_jit
-def iq_and_carrier_axis(plan: TilePlan, frames, dark, gain=None, carrier_phase_rad=None):
+def iq_and_carrier_axis(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=None):
     """`iq_and_checks` and the carrier axis in one program → I, Q, (cos φ, sin φ, noise
     variance), flags."""
-    i, q, flags = _checks_and_iq(plan, frames, dark, gain, carrier_phase_rad)
+    i, q, flags = _checks_and_iq(stage, frames, dark, gain, carrier_phase_rad)
     return i, q, _axis(i, q), flags
 
 
