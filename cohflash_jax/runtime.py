@@ -66,21 +66,25 @@ def async_filter_jit(fun):
         return flat
 
     @functools.cache
-    def traced(static, treedef):
+    def traced(static_key, treedef):
         """The program as a plain `jax.jit`, for calls under another transformation (a
         compiled executable takes concrete arrays only)."""
-        return jax.jit(flat_fun(static, treedef))
+        static_leaves, static_def = static_key
+        return jax.jit(flat_fun(jax.tree.unflatten(static_def, static_leaves), treedef))
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        # keyword arguments as a tuple of pairs: the static half must be hashable
         dynamic, static = eqx.partition((args, tuple(sorted(kwargs.items()))), eqx.is_array)
         leaves, treedef = jax.tree.flatten(dynamic)
+        # the static half by its leaves and structure: hashable where it holds dicts (a pytree
+        # of arguments), as long as its leaves are
+        static_leaves, static_def = jax.tree.flatten(static)
+        static_key = (tuple(static_leaves), static_def)
         if any(isinstance(x, jax.core.Tracer) for x in leaves):  # inside another transformation
-            return traced(static, treedef)(*leaves)
+            return traced(static_key, treedef)(*leaves)
         signature = tuple(_argument_signature(x) for x in leaves)
         quick = _QUICK_COMPILE.get()
-        key = (static, treedef, signature, quick)
+        key = (static_key, treedef, signature, quick)
         program = programs.get(key)
         if program is None:
             flat = flat_fun(static, treedef)

@@ -737,6 +737,10 @@ def test_async_filter_jit_keeps_filter_jit_semantics():
     assert len(traces) == 1  # same shapes and statics: compiled once
     np.testing.assert_allclose(g(Settings(jnp.asarray(2.0), 2, 3.0), x, negate=False), 2 * x**2 + 3)
     assert len(traces) == 2
+    # arguments held in dicts (a fit's `args`): the static half is keyed by its leaves
+    h = async_filter_jit(lambda args: args["scale"] * args["x"] ** args["power"])
+    np.testing.assert_allclose(h({"scale": jnp.asarray(3.0), "x": x, "power": 2}), 3 * x**2)
+    np.testing.assert_allclose(h({"scale": jnp.asarray(3.0), "x": x, "power": 3}), 3 * x**3)
 
 
 def test_candan_interpolation_is_exact_to_a_small_fraction_of_a_bin_and_near_the_frequency_only_bound(

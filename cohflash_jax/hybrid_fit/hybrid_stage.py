@@ -11,6 +11,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 
+from ..runtime import async_filter_jit
 from .common import GAIN_SIGMA_LIMIT, PHASE_SIGMA_LIMIT_RAD, covariance
 
 
@@ -148,6 +149,19 @@ class HybridFit:
     used: np.ndarray  # (P,) bool: the pixels fitted (amplitudes are zero elsewhere)
 
 
+HYBRID_MAX_STEPS = 200
+
+
+@async_filter_jit
+def solve_hybrid(y0, args):
+    """The hybrid's Levenberg–Marquardt fit from `y0` → (parameters, converged, steps): one
+    compiled program, loaded from the executable cache in later processes without tracing
+    optimistix's solver again (~0.3 s a process)."""
+    solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12)
+    sol = optx.least_squares(hybrid_residuals, solver, y0, args=args, max_steps=HYBRID_MAX_STEPS, throw=False)
+    return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+
+
 def fit_hybrid(stats: dict, nominal_rad, start=None, used=None) -> HybridFit:
     """Stage 1: per-CCD phase errors and gains (gauge CCD 1) from the pixel statistics of the
     pixels `used` (P,) bool (all by default; the others are weighted out, not dropped, so that
@@ -156,10 +170,9 @@ def fit_hybrid(stats: dict, nominal_rad, start=None, used=None) -> HybridFit:
     rank = np.asarray(stats["rank"])
     used = np.ones(rank.shape, bool) if used is None else np.asarray(used, bool)
     args = (nominal, stats, jnp.asarray(used, jnp.float64))
-    solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12)
     y0 = jnp.zeros(6) if start is None else jnp.asarray(start, jnp.float64)
-    sol = optx.least_squares(hybrid_residuals, solver, y0, args=args, max_steps=200, throw=False)
-    params = sol.value
+    params, succeeded, steps = solve_hybrid(y0, args)
+    succeeded = bool(succeeded)
     dof = int(4 * rank[used].sum() - 2 * used.sum() - 6)
     cov, chi2, singular, _ = covariance(hybrid_residuals, params, args, dof)
     sig = np.sqrt(np.maximum(np.diag(cov), 0))
@@ -168,10 +181,7 @@ def fit_hybrid(stats: dict, nominal_rad, start=None, used=None) -> HybridFit:
     singular = singular or not np.all(np.isfinite(sig))
     phase_sig, gain_sig = sig[:3], np.exp(np.asarray(params[3:])) * sig[3:]
     identified = (
-        not singular
-        and sol.result == optx.RESULTS.successful
-        and np.all(phase_sig < PHASE_SIGMA_LIMIT_RAD)
-        and np.all(gain_sig < GAIN_SIGMA_LIMIT)
+        not singular and succeeded and np.all(phase_sig < PHASE_SIGMA_LIMIT_RAD) and np.all(gain_sig < GAIN_SIGMA_LIMIT)
     )
     if not identified:
         why = (
@@ -186,8 +196,10 @@ def fit_hybrid(stats: dict, nominal_rad, start=None, used=None) -> HybridFit:
             "which these data do not show"
         )
         precise = np.all(phase_sig < PHASE_SIGMA_LIMIT_RAD) and np.all(gain_sig < GAIN_SIGMA_LIMIT)
-        if sol.result != optx.RESULTS.successful and precise and not singular:
-            note = f"the fit did not converge ({sol.result})"
+        if not succeeded and precise and not singular:
+            note = (
+                f"the fit did not converge (Levenberg–Marquardt stopped after {int(steps)} of {HYBRID_MAX_STEPS} steps)"
+            )
     theta = np.asarray(nominal) + np.concatenate([[0.0], np.asarray(params[:3])])
     gains = np.exp(np.concatenate([[0.0], np.asarray(params[3:])]))
     return HybridFit(

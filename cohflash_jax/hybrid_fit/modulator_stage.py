@@ -13,6 +13,7 @@ import optimistix as optx
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..modulator import MZM, beat_spectrum, sideband_weights
+from ..runtime import async_filter_jit
 from .common import Estimate, covariance
 
 
@@ -57,6 +58,16 @@ class ModulatorFit:
 JACKKNIFE_RTOL = 1e-6  # the leave-a-block-out fits' relative tolerance (the full fit: 1e-9)
 
 
+@async_filter_jit
+def solve_modulator(y0: dict, args: tuple, *, rtol: float, max_steps: int):
+    """The modulator's Levenberg–Marquardt fit from `y0` → (parameters, converged, steps)
+    (absolute tolerance rtol/10): one compiled program per tolerance and shapes, loaded from
+    the executable cache in later processes without tracing optimistix's solver again."""
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=0.1 * rtol)
+    sol = optx.least_squares(modulator_residuals, solver, y0, args=args, max_steps=max_steps, throw=False)
+    return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+
+
 def block_jackknife_sigma(value: dict, args: tuple, blocks: int) -> dict:
     """σ of each fitted parameter from the delete-a-block jackknife over `blocks` contiguous
     runs of frames, √((G−1)/G · Σ_g (θ_(g) − θ̄)²): it holds whatever the errors' correlation
@@ -68,15 +79,12 @@ def block_jackknife_sigma(value: dict, args: tuple, blocks: int) -> dict:
     # each leave-a-block-out fit starts at the full fit and needs its parameters only to a small
     # fraction of their spread (the jackknife σ itself is uncertain by ~1/√(2G)): a looser
     # tolerance than the full fit's moves σ by ~1e-7 of itself and saves ~30 % of the solves' time
-    solver = optx.LevenbergMarquardt(rtol=JACKKNIFE_RTOL, atol=JACKKNIFE_RTOL * 0.1)
     fits = []
     for a, b in zip(edges[:-1], edges[1:]):
         weight = np.ones(n)
         weight[a:b] = 0.0
-        sol = optx.least_squares(
-            modulator_residuals, solver, value, args=args[:-1] + (jnp.asarray(weight),), max_steps=50, throw=False
-        )
-        fits.append({k: float(v) for k, v in sol.value.items()})
+        fitted, _, _ = solve_modulator(value, args[:-1] + (jnp.asarray(weight),), rtol=JACKKNIFE_RTOL, max_steps=50)
+        fits.append({k: float(v) for k, v in fitted.items()})
     out = {}
     for k in value:
         theta = np.array([f[k] for f in fits])
@@ -119,21 +127,19 @@ def fit_modulator(
         fixed,
         jnp.ones(r.shape[0]),
     )
-    solver = optx.LevenbergMarquardt(rtol=1e-9, atol=1e-10)
-    sol = optx.least_squares(modulator_residuals, solver, y0, args=args, max_steps=200, throw=False)
-    flat, unravel = jax.flatten_util.ravel_pytree(sol.value)
+    val, converged, _ = solve_modulator(y0, args, rtol=1e-9, max_steps=200)
+    converged = bool(converged)
+    flat, unravel = jax.flatten_util.ravel_pytree(val)
     dof = r.size - flat.size - 2 * p
     # clustered by frame: a residual error of the common carrier drift moves every pixel of a
     # frame alike. A floor only: under turbulence the error is also correlated across frames,
     # which this misses (roll-off pull std 1.26–1.35 with it); the block jackknife below counts it
     cov, chi2, singular, _ = covariance(_flat_modulator_residuals, flat, (unravel, args), dof, clusters=r.shape[0])
     sig = unravel(jnp.asarray(np.sqrt(np.maximum(np.diag(cov), 0))))
-    val = sol.value
     if jackknife_blocks:
-        spread = block_jackknife_sigma(sol.value, args, jackknife_blocks)
+        spread = block_jackknife_sigma(val, args, jackknife_blocks)
         sig = {k: jnp.maximum(sig[k], spread[k]) for k in sig}
     x0_fit, x0_sig = float(jnp.exp(val["log_x0"])), float(jnp.exp(val["log_x0"]) * sig["log_x0"])
-    converged = sol.result == optx.RESULTS.successful
     beta = Estimate(2 * x0_fit, 2 * x0_sig)
     if not converged or singular or not x0_sig < 0.1 * x0_fit:
         beta = Estimate(
