@@ -156,7 +156,7 @@ HYBRID_MAX_STEPS = 200
 def solve_hybrid(y0, args):
     """The hybrid's Levenberg–Marquardt fit from `y0` → (parameters, converged, steps): one
     compiled program, loaded from the executable cache in later processes without tracing
-    optimistix's solver again (~0.3 s a process)."""
+    optimistix's solver again."""
     solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12)
     sol = optx.least_squares(hybrid_residuals, solver, y0, args=args, max_steps=HYBRID_MAX_STEPS, throw=False)
     return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
