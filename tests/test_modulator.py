@@ -15,6 +15,20 @@ def test_bessel_matches_scipy_float64(order):
     assert np.max(np.abs(np.asarray(cf.bessel_j(order, x)) - jv(order, x))) < 1e-14
 
 
+@pytest.mark.parametrize("max_order", [1, 3, 8, 32])
+def test_fewer_nodes_for_low_orders_keep_float64_accuracy(max_order):
+    """`bessel_nodes(max_order)` (the sideband weights' node count) gives every order up to
+    `max_order` to rounding over the whole argument range; a rule with too few nodes does not
+    (the check can fail)."""
+    from cohflash_jax.modulator import bessel_nodes
+
+    x = np.linspace(0, 20, 2001)
+    for n in range(-max_order, max_order + 1):
+        assert np.max(np.abs(np.asarray(cf.bessel_j(n, x, bessel_nodes(max_order))) - jv(n, x))) < 1e-14, n
+    too_few = np.asarray(cf.bessel_j(max_order, x, max_order + 20))
+    assert np.max(np.abs(too_few - jv(max_order, x))) > 1e-10
+
+
 def test_bessel_float32_small_and_zero_argument_is_finite_and_accurate():
     # over the whole documented domain (orders ≤ 32, |x| ≤ 20): n·t is reduced exactly, so
     # float32 stays at a few ulp of 1 at every order (measured 2.5e-7)
