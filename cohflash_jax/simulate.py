@@ -155,8 +155,8 @@ def expected_port_electrons(
         beat = beat_spectrum(psi.astype(beat_dtype), weights)
         return total + beat.astype(complex_dtype) * amplitude[:, None, r]
 
-    c, _, p = returns.delay_s.shape
-    summed = jax.lax.fori_loop(0, returns.delay_s.shape[1], add_return, jnp.zeros((c, f.shape[0], p), complex_dtype))
+    c, num_returns, p = returns.delay_s.shape
+    summed = jax.lax.fori_loop(0, num_returns, add_return, jnp.zeros((c, f.shape[0], p), complex_dtype))
     reference_e = sensor.electrons(link.reference_power_per_pixel_w)
     coherent = jnp.sqrt(reference_e) * summed.astype(jnp.complex128)
     coherent = coherent * jnp.exp(1j * extra_phase)[None, :, None]

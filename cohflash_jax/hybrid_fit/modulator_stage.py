@@ -78,7 +78,7 @@ def block_jackknife_sigma(value: dict, args: tuple, blocks: int) -> dict:
     edges = np.linspace(0, n, blocks + 1).astype(int)
     # each leave-a-block-out fit starts at the full fit and needs its parameters only to a small
     # fraction of their spread (the jackknife σ itself is uncertain by ~1/√(2G)): a looser
-    # tolerance than the full fit's moves σ by ~1e-7 of itself and saves ~30 % of the solves' time
+    # tolerance than the full fit's moved σ by ~3e-9 of itself and saves ~30 % of the solves' time
     fits = []
     for a, b in zip(edges[:-1], edges[1:]):
         weight = np.ones(n)
