@@ -142,7 +142,12 @@ def dominant_order(weights) -> int:
 class SweepGeometry(eqx.Module):
     """Bins, windows and folds of one sweep, modulator and τ_sys (host-side numbers, static
     under jit). For a non-uniform schedule the envelope width c/(2B) plays the bin's part and
-    the ambiguity is the schedule's own (`schedule_period_s`)."""
+    the ambiguity is the schedule's own (`schedule_period_s`).
+
+    τ_sys and the depth window it places are fields, not static ones: Python floats on the
+    host (static to `eqx.filter_jit` all the same), which the reconstruction's programs take
+    as arrays (`reconstruct.plan.program_plan`), so that a calibration's new τ_sys runs the
+    programs already compiled. The fold index stays static: it picks code (a mirrored half-period)."""
 
     num_frames: int = eqx.field(static=True)
     uniform: bool = eqx.field(static=True)
@@ -150,12 +155,12 @@ class SweepGeometry(eqx.Module):
     step_hz: float = eqx.field(static=True)  # the median step of a non-uniform schedule
     mean_frequency_hz: float = eqx.field(static=True)
     dominant_order: int = eqx.field(static=True)
-    system_delay_s: float = eqx.field(static=True)
+    system_delay_s: float
     bin_depth_m: float = eqx.field(static=True)
     ambiguity_m: float = eqx.field(static=True)
     delay_period_s: float = eqx.field(static=True)
     fold_index: int = eqx.field(static=True)
-    depth_window_m: tuple[float, float] = eqx.field(static=True)
+    depth_window_m: tuple[float, float]
     mirror_symmetric: bool = eqx.field(static=True)
 
     @classmethod

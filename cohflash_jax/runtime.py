@@ -176,8 +176,6 @@ class ExecutableCache:
     def program(self, fun, flat, parts, leaves, quick: bool = False):
         """The compiled `flat` for these leaves: from disk, else compiled (and written);
         `quick`: compiled for a short compile (`quick_compile`)."""
-        import pickle
-
         import jax
 
         jitted = jax.jit(flat)
@@ -185,21 +183,37 @@ class ExecutableCache:
         if name is None:
             return self._compile(jitted, leaves, None, quick) if quick else jitted
         path = self.folder / name
-        if path.exists():
-            started = time.perf_counter()
-            try:
-                from jax.experimental.serialize_executable import deserialize_and_load
+        program = self._load(path, jitted, leaves, quick)
+        if program is None:
+            # processes sharing the folder (test workers, Dask workers, two runs started
+            # together) compile a program once: the others wait for its entry and load it
+            with entry_lock(path):
+                program = self._load(path, jitted, leaves, quick)
+                if program is None:
+                    program = self._compile(jitted, leaves, path, quick)
+        return program
 
-                payload, in_tree, out_tree = pickle.loads(path.read_bytes())
-                devices = [d for x in leaves for d in getattr(x, "devices", lambda: ())()][:1] or None
-                program = deserialize_and_load(payload, in_tree, out_tree, execution_devices=devices)
-                os.utime(path)  # recently used: the bound removes the oldest first
-                self.loaded += 1
-                self.load_seconds += time.perf_counter() - started
-                return self._checked(program, path, lambda: self._compile(jitted, leaves, path, quick))
-            except Exception:  # a damaged or foreign entry: compile afresh and replace it
-                path.unlink(missing_ok=True)
-        return self._compile(jitted, leaves, path, quick)
+    def _load(self, path: Path, jitted, leaves, quick: bool):
+        """The entry at `path` loaded for these leaves, or None where there is none (a damaged
+        or foreign entry is removed)."""
+        import pickle
+
+        if not path.exists():
+            return None
+        started = time.perf_counter()
+        try:
+            from jax.experimental.serialize_executable import deserialize_and_load
+
+            payload, in_tree, out_tree = pickle.loads(path.read_bytes())
+            devices = [d for x in leaves for d in getattr(x, "devices", lambda: ())()][:1] or None
+            program = deserialize_and_load(payload, in_tree, out_tree, execution_devices=devices)
+            os.utime(path)  # recently used: the bound removes the oldest first
+        except Exception:  # a damaged or foreign entry: compiled afresh and replaced
+            path.unlink(missing_ok=True)
+            return None
+        self.loaded += 1
+        self.load_seconds += time.perf_counter() - started
+        return self._checked(program, path, lambda: self._compile(jitted, leaves, path, quick))
 
     def _checked(self, program, path: Path, recompile):
         """`program`, whose first call waits for its result: an entry that loads but cannot
@@ -264,6 +278,58 @@ class ExecutableCache:
 
     def bound(self):
         bound_folder(self.folder, "*.exe", self.MAX_BYTES)
+
+
+# How long a process waits for another one's compile of the same program before compiling it too
+ENTRY_LOCK_WAIT_S = 600.0
+
+
+@contextlib.contextmanager
+def entry_lock(path: Path, wait_s: float = ENTRY_LOCK_WAIT_S):
+    """Hold the lock of a cache entry's compile: an advisory `flock` on `.<name>.lock` beside
+    it, so that of the processes (or threads) that need one program, one compiles it and the
+    others wait. The system releases the lock of a process that dies; the holder removes the
+    file, and a waiter that locked a removed file tries again. Where locks are not supported,
+    or after `wait_s`, it goes on unlocked: at worst a program is compiled twice."""
+    try:
+        import fcntl
+    except ImportError:  # not a POSIX system
+        yield
+        return
+    lock_path = path.with_name(f".{path.name}.lock")
+    deadline = time.monotonic() + wait_s
+    fd = None
+    try:
+        while time.monotonic() < deadline:
+            fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:  # another process is compiling it
+                os.close(fd)
+                fd = None
+                time.sleep(0.05)
+                continue
+            try:
+                current = os.stat(lock_path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                current = False
+            if current:
+                break
+            os.close(fd)  # locked a file its holder had removed: lock the new one
+            fd = None
+    except OSError:  # no locks on this file system
+        if fd is not None:
+            os.close(fd)
+        fd = None
+    try:
+        yield
+    finally:
+        if fd is not None:
+            try:
+                os.unlink(lock_path)
+            except OSError:
+                pass
+            os.close(fd)
 
 
 def bound_folder(folder: Path, pattern: str, max_bytes: int):

@@ -315,14 +315,14 @@ def sample_pixels(
     frames (4, N, H, W) or (4, N, P), under the nominal calibration of `instrument`: what
     studies and tests sample (the CLI's `uncertainty` reads a capture file instead).
     `quiet` silences the not-converged warnings (each posterior records it)."""
-    from .reconstruct import ReconstructOptions, build_plan
+    from .reconstruct import ReconstructOptions, build_plan, program_plan
 
     options = ReconstructOptions(method="ml")
     plan = build_plan(instrument, options, float(instrument.sensor.adc_max_dn))
     frames = np.asarray(frames)
     flat = frames.reshape(4, frames.shape[1], -1)
     count = flat.shape[-1] if pixels is None else min(pixels, flat.shape[-1])
-    data = pixel_data(plan, jnp.asarray(flat[:, :, :count]), options.window_bins)
+    data = pixel_data(program_plan(plan), jnp.asarray(flat[:, :, :count]), options.window_bins)
     rng = np.random.default_rng(0) if rng is None else rng
     posts = []
     with warnings.catch_warnings():

@@ -1,6 +1,7 @@
 """The executable cache (issue #21): a program compiled in one process is loaded whole in the
 next, without tracing, and gives the same results; a damaged entry is compiled afresh."""
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -115,3 +116,101 @@ def test_small_captures_of_one_bucket_and_methods_of_one_capture_share_programs(
     before = made()
     reconstruct_array(frames, inst, ReconstructOptions(method="interp", progress=False))
     assert made() == before + 1, "a second method made more than its inversion program"
+
+
+def test_a_new_system_delay_or_threshold_runs_the_programs_already_compiled():
+    """τ_sys, the depth window it places and the validity thresholds reach the programs as
+    arrays (`reconstruct.program_plan`), not as constants compiled in: a calibration with a
+    new τ_sys (the paper's sweep, and the 10 Hz mode's tone table), or another SNR or χ²
+    threshold, makes no program, and the new values act (the depths move by τ_sys·c/2; an
+    unreachable threshold flags every pixel)."""
+    import jax
+
+    import cohflash_jax as cf
+    from cohflash_jax.reconstruct import ReconstructOptions, reconstruct_array
+    from cohflash_jax.runtime import EXECUTABLES
+    from cohflash_jax.status import Status
+
+    made = lambda: EXECUTABLES.compiled + EXECUTABLES.loaded
+    ml = ReconstructOptions(method="ml", progress=False)
+    for inst, depth_m, delay_s in (
+        (cf.Instrument.paper(256), 12.0, 2.5e-9),
+        (cf.Instrument.ten_hz_mode(link=cf.LinkBudget(probe_power_w=1.0)), 0.2, 0.5e-9),
+    ):
+        scene = cf.planar(depth_m, 0.9, effects=("shot_noise", "read_noise"))
+        frames = np.asarray(cf.simulate(scene, inst, 6, 6, jax.random.key(7)))
+        nominal = reconstruct_array(frames, inst, ml)
+        assert nominal["valid"].all()
+        before = made()
+        delayed = reconstruct_array(frames, inst.replace(system_delay_s=delay_s), ml)
+        assert made() == before, "a new τ_sys compiled programs afresh"
+        np.testing.assert_array_equal(delayed["fit_status"], nominal["fit_status"])
+        shift_m = delay_s * cf.SPEED_OF_LIGHT_M_PER_S / 2
+        np.testing.assert_allclose(delayed["depth_m"], nominal["depth_m"] - shift_m, rtol=0, atol=1e-9)
+    for options, status in (
+        (dataclasses.replace(ml, snr_threshold_db=90.0), Status.LOW_SNR),
+        (dataclasses.replace(ml, max_fit_chi2=1e-6), Status.POOR_FIT),
+    ):
+        flagged = reconstruct_array(frames, inst, options)
+        assert made() == before, "another threshold compiled programs afresh"
+        assert np.all(flagged["fit_status"] == status)
+
+
+def test_processes_started_together_compile_each_program_once(tmp_path):
+    """Two processes that need the same programs at once, sharing a cache folder: one compiles
+    each program, the other waits for its entry and loads it (`runtime.entry_lock`), and both
+    give the same results. No lock file is left behind."""
+    cache = tmp_path / "cache"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    runs = [
+        subprocess.Popen(
+            [sys.executable, "-c", RUN, str(cache), str(tmp_path / f"{k}.npy")],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
+        for k in range(2)
+    ]
+    counts = []
+    for proc in runs:
+        out, err = proc.communicate(timeout=300)
+        assert proc.returncode == 0, err[-2000:]
+        counts.append(json.loads(out.strip().splitlines()[-1]))
+    programs = len(list((cache / "executables").glob("*.exe")))
+    assert programs >= 2
+    assert sum(c["compiled"] for c in counts) == programs, counts
+    assert sum(c["loaded"] for c in counts) == programs, counts
+    np.testing.assert_array_equal(np.load(tmp_path / "0.npy"), np.load(tmp_path / "1.npy"))
+    assert not list((cache / "executables").glob(".*.lock"))
+
+
+def test_an_entry_lock_excludes_a_second_holder_until_the_first_is_done(tmp_path):
+    """`entry_lock` holds a second taker (here a thread, with a lock file of its own opening)
+    until the first releases it, leaves no lock file, and past its time limit goes on
+    unlocked rather than wait for ever."""
+    import threading
+    import time
+
+    from cohflash_jax.runtime import entry_lock
+
+    entry = tmp_path / "program.exe"
+    order = []
+
+    def take(label, wait_s=60.0):
+        with entry_lock(entry, wait_s):
+            order.append(label)
+
+    for label, wait_s, expected in (
+        ("waiter", 60.0, ["holder done", "waiter"]),
+        ("impatient", 0.2, ["impatient", "holder done"]),
+    ):
+        order.clear()
+        with entry_lock(entry):
+            taker = threading.Thread(target=take, args=(label, wait_s))
+            taker.start()
+            time.sleep(0.6)
+            order.append("holder done")
+        taker.join(10)
+        assert order == expected
+    assert not list(tmp_path.glob(".*.lock"))

@@ -74,13 +74,14 @@ class ToneTable(eqx.Module):
     d_g = start + g·s. `unit_tones` (N, G) float32: mean-removed t, unit norm (the basin
     search's matrix); `rows` (G, K+1, N) float32: mean-removed R_j; `means` (G, K+1): the
     R_j's means over frames; `norm_coeffs` (G, 2K+1): coefficients of |Σ_j u^j/j!·R_j|² in u
-    (mean-removed, from the float32 rows)."""
+    (mean-removed, from the float32 rows). `start_m` moves with τ_sys: a field, which the
+    reconstruction's programs take as an array (`reconstruct.plan.program_plan`)."""
 
     unit_tones: Float[Array, "N G"]
     rows: Float[Array, "G K1 N"]
     means: Float[Array, "G K1"]
     norm_coeffs: Float[Array, "G K2"]
-    start_m: float = eqx.field(static=True)
+    start_m: float
     spacing_m: float = eqx.field(static=True)
 
     @property

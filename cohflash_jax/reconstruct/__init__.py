@@ -18,7 +18,7 @@ from .api import (
     reconstruct_capture,
 )
 from .engine import BlockReader, PendingTile, TileDispatcher, aligned_copy, stream_devices, sub_tile_pixels
-from .plan import IQStage, TilePlan, build_plan, frequency_path
+from .plan import IQStage, TilePlan, build_plan, frequency_path, program_plan
 from .policy import (
     DEFAULT_MAX_FIT_CHI2,
     DEFAULT_SNR_THRESHOLD_DB,
@@ -49,6 +49,7 @@ __all__ = [
     "TilePlan",
     "build_plan",
     "frequency_path",
+    "program_plan",
     "DEFAULT_MAX_FIT_CHI2",
     "DEFAULT_SNR_THRESHOLD_DB",
     "ReconstructOptions",

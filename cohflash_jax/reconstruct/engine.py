@@ -18,7 +18,7 @@ import numpy as np
 
 from ..capture import Capture
 from ..runtime import place_on_devices, stream_devices
-from .plan import TilePlan
+from .plan import TilePlan, program_plan
 from .programs import process_tile
 
 # CPU: the uint16 frames of a sub-tile (4·N·2 bytes a pixel) fit in ~12 MiB, so its I/Q,
@@ -86,14 +86,14 @@ class PendingTile:
 class TileDispatcher:
     """Runs `process_tile` over tiles in sub-tiles of `sub_px` pixels, each dispatched
     asynchronously (the last padded to the same shape: one compilation per device), in turn
-    on each of `stream_devices`. The plan and a known carrier drift are placed on every
-    device once, when the dispatcher is made, not once per tile."""
+    on each of `stream_devices`. The plan (as `program_plan` gives it) and a known carrier
+    drift are placed on every device once, when the dispatcher is made, not once per tile."""
 
     def __init__(self, plan: TilePlan, sub_px: int | None = None, carrier_phase_rad=None):
         self.sub_px = sub_px
         self.devices = stream_devices()
         carrier = None if carrier_phase_rad is None else jnp.asarray(carrier_phase_rad)
-        self.placed = place_on_devices((plan, carrier), self.devices)
+        self.placed = place_on_devices((program_plan(plan), carrier), self.devices)
 
     def dispatch(self, frames, dark=None, data_status=None, gain=None) -> PendingTile:
         """Dispatch a tile (4, N, P) with its per-pixel maps (4, P) and upstream status (P,)."""

@@ -19,6 +19,7 @@ from ..estimate import (
     choose_estimator,
 )
 from ..estimate.harmonics import HarmonicResolver, harmonic_note
+from ..estimate.table import ToneTable
 from ..estimate.window_model import UniformModel
 from ..geometry import SweepGeometry
 from ..instrument import Instrument
@@ -112,6 +113,33 @@ def build_plan(
     window = geometry.depth_window_m if harmonics is None else harmonics.depth_window_m
     policy = ValidityPolicy(threshold, float(options.max_fit_chi2), (max(0.0, window[0]), window[1]))
     return TilePlan(iq, model, geometry, coarse, estimator, policy, options.method, harmonics)
+
+
+def program_plan(plan: TilePlan) -> TilePlan:
+    """The plan as the sub-tile programs take it: τ_sys, the depth windows it places, the tone
+    table's start and the validity thresholds as float64 arrays, weakly typed like the Python
+    floats they stand for (float32 arithmetic stays float32), not constants compiled into the
+    programs. A calibration with a new τ_sys (within the same fold), or another SNR or χ²
+    threshold, then runs the programs already compiled."""
+    runtime = lambda x: jnp.asarray(float(x))
+
+    def convert(node):
+        if isinstance(node, SweepGeometry):
+            return eqx.tree_at(
+                lambda g: (g.system_delay_s, g.depth_window_m),
+                node,
+                (runtime(node.system_delay_s), tuple(map(runtime, node.depth_window_m))),
+            )
+        if isinstance(node, UniformModel):
+            return eqx.tree_at(lambda m: m.system_delay_s, node, runtime(node.system_delay_s))
+        if isinstance(node, ToneTable):
+            return eqx.tree_at(lambda t: t.start_m, node, runtime(node.start_m))
+        if isinstance(node, ValidityPolicy):
+            return jax.tree.map(runtime, node)
+        return node
+
+    kinds = (SweepGeometry, UniformModel, ToneTable, ValidityPolicy)
+    return jax.tree.map(convert, plan, is_leaf=lambda x: isinstance(x, kinds))
 
 
 def frequency_path(plan: TilePlan) -> str:

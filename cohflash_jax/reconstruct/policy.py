@@ -96,12 +96,14 @@ class ReconstructOptions:
 
 
 class ValidityPolicy(eqx.Module):
-    """The thresholds a pixel must pass (static under jit): SNR (linear, the applied one),
-    reduced χ² of a fit, and the depths a valid pixel may have."""
+    """The thresholds a pixel must pass: SNR (linear, the applied one), reduced χ² of a fit,
+    and the depths a valid pixel may have. Python floats on the host; the reconstruction's
+    programs take them as arrays (`plan.program_plan`), so another threshold or calibration
+    runs the programs already compiled."""
 
-    snr_threshold: float = eqx.field(static=True)
-    max_fit_chi2: float = eqx.field(static=True)
-    valid_window_m: tuple[float, float] = eqx.field(static=True)
+    snr_threshold: float
+    max_fit_chi2: float
+    valid_window_m: tuple[float, float]
 
 
 def classify(
