@@ -163,16 +163,17 @@ class ExecutableCache:
         return self._environment
 
     def key(self, fun, static, treedef, signature, quick: bool = False) -> str | None:
-        """The entry's file name, or None where the static half has no stable text."""
+        """The entry's file name, or None where the static half or the arguments' structure
+        (whose nodes hold the modules' static fields) has no stable text."""
         import hashlib
 
         import jax
 
-        text = f"{str(jax.tree.structure(static))}{jax.tree.leaves(static)!r}"
+        text = f"{str(jax.tree.structure(static))}{jax.tree.leaves(static)!r}|{treedef}"
         if " at 0x" in text:
             return None
         shapes = repr([(shape, dtype, weak, None if sh is None else repr(sh)) for shape, dtype, weak, sh in signature])
-        parts = (self.environment(), fun.__module__, fun.__qualname__, text, str(treedef), shapes)
+        parts = (self.environment(), fun.__module__, fun.__qualname__, text, shapes)
         whole = "|".join(parts + (("quick",) if quick else ()))
         return f"{fun.__name__.strip('_')}-{hashlib.sha256(whole.encode()).hexdigest()[:40]}.exe"
 

@@ -55,10 +55,24 @@ def test_programs_load_in_a_fresh_process_and_damaged_entries_are_replaced(tmp_p
 
 
 def test_a_static_half_without_stable_text_stays_in_memory():
+    """A static argument, or a module's static field, printed with its address has no key:
+    its program is never written to disk (another process could not find it)."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
     from cohflash_jax.runtime import EXECUTABLES
 
-    key = EXECUTABLES.key(test_a_static_half_without_stable_text_stays_in_memory, (lambda: 0,), None, ())
-    assert key is None
+    fun = test_a_static_half_without_stable_text_stays_in_memory
+    assert EXECUTABLES.key(fun, (lambda: 0,), None, ()) is None
+
+    class Part(eqx.Module):
+        rule: object = eqx.field(static=True)
+        value: jax.Array
+
+    structure = lambda rule: jax.tree.structure(((Part(rule, jnp.ones(2)),), ()))
+    assert EXECUTABLES.key(fun, ((), ()), structure(lambda v: v), ()) is None
+    assert EXECUTABLES.key(fun, ((), ()), structure("named"), ()) is not None
 
 
 def test_quick_compiled_programs_are_kept_apart_and_agree_with_optimised_ones():
