@@ -106,6 +106,22 @@ def _argument_signature(x):
     return (x.shape, x.dtype, bool(getattr(x, "weak_type", False)), getattr(x, "sharding", None))
 
 
+_LAPACK_BOUND = False
+
+
+def bind_lapack_kernels():
+    """Bind LAPACK's kernels in this process, once. JAX binds them when it lowers a program
+    that uses one; an executable loaded from disk into a process that has lowered none calls
+    an unbound kernel and crashes (measured: a segmentation fault in `eigh`). Lowering a 2×2
+    Cholesky binds them all (nothing is compiled; ~0.1 s in a fresh process)."""
+    global _LAPACK_BOUND
+    if not _LAPACK_BOUND:
+        import jax
+
+        jax.jit(jax.lax.linalg.cholesky).lower(np.eye(2))
+        _LAPACK_BOUND = True
+
+
 class ExecutableCache:
     """Compiled programs kept on disk whole, keyed by everything that determines them.
 
@@ -209,6 +225,8 @@ class ExecutableCache:
             from jax.experimental.serialize_executable import deserialize_and_load
 
             payload, in_tree, out_tree = pickle.loads(path.read_bytes())
+            if b"lapack_" in payload:  # it calls LAPACK kernels: bound before it runs
+                bind_lapack_kernels()
             devices = [d for x in leaves for d in getattr(x, "devices", lambda: ())()][:1] or None
             program = deserialize_and_load(payload, in_tree, out_tree, execution_devices=devices)
             os.utime(path)  # recently used: the bound removes the oldest first

@@ -228,3 +228,43 @@ def test_an_entry_lock_excludes_a_second_holder_until_the_first_is_done(tmp_path
         taker.join(10)
         assert order == expected
     assert not list(tmp_path.glob(".*.lock"))
+
+
+LAPACK_RUN = textwrap.dedent(
+    """
+    import json, sys
+    import numpy as np
+    from cohflash_jax.runtime import EXECUTABLES, async_filter_jit, enable_compilation_cache
+    enable_compilation_cache(sys.argv[1])
+    import jax.numpy as jnp
+
+    @async_filter_jit
+    def spectrum(gram):
+        return jnp.linalg.eigh(gram)[0]  # LAPACK's syevd
+
+    a = np.random.default_rng(0).normal(size=(5, 5))
+    evals = spectrum(jnp.asarray(a @ a.T))
+    print(json.dumps({"loaded": EXECUTABLES.loaded, "compiled": EXECUTABLES.compiled,
+                      "evals": np.asarray(evals).tolist()}))
+    """
+)
+
+
+def test_a_program_calling_lapack_loads_into_a_fresh_process(tmp_path):
+    """A program whose kernels come from LAPACK (`eigh`), loaded from the cache into a process
+    that has lowered nothing yet, runs (its kernels are bound first: `bind_lapack_kernels`;
+    unbound, the process crashed with a segmentation fault) and gives the same numbers."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    results = []
+    for _ in range(2):
+        done = subprocess.run(
+            [sys.executable, "-c", LAPACK_RUN, str(tmp_path / "cache")],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=300,
+        )
+        assert done.returncode == 0, (done.returncode, done.stderr[-2000:])
+        results.append(json.loads(done.stdout.strip().splitlines()[-1]))
+    first, second = results
+    assert first["compiled"] >= 1 and second == {**first, "loaded": first["compiled"], "compiled": 0}
