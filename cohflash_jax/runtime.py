@@ -76,7 +76,7 @@ def async_filter_jit(fun):
     def call(*args, **kwargs):
         # one flatten of every argument, its leaves split into arrays (the program's inputs)
         # and the rest (static: part of the program's key, so hashable), as `eqx.partition`
-        # would split them but without its per-call tree maps (10 Hz mode: ~1,000 calls a second)
+        # would split them but without its per-call tree maps (the 10 Hz stream: ~100 calls a map)
         leaves, treedef = jax.tree.flatten((args, tuple(sorted(kwargs.items()))))
         mask = tuple(map(eqx.is_array, leaves))
         arrays = [x for x, m in zip(leaves, mask) if m]
@@ -98,9 +98,8 @@ def async_filter_jit(fun):
 
 def _argument_signature(x):
     """What a compiled program depends on in an argument: shape, dtype, weak type and, for a
-    placed array, its sharding (device). Read from the attributes: `jax.typeof` cost ~40 µs
-    an argument and `str` of a dtype ~7 µs, ~0.2 s and ~0.07 s a second over the 10 Hz mode's
-    calls."""
+    placed array, its sharding (device). Read from the attributes, the dtype as it is: both
+    `jax.typeof` and `str` of a dtype cost more than the rest of a call (docs/performance.md)."""
     if isinstance(x, np.ndarray):
         return (x.shape, x.dtype, False, None)
     return (x.shape, x.dtype, bool(getattr(x, "weak_type", False)), getattr(x, "sharding", None))
@@ -112,8 +111,8 @@ _LAPACK_BOUND = False
 def bind_lapack_kernels():
     """Bind LAPACK's kernels in this process, once. JAX binds them when it lowers a program
     that uses one; an executable loaded from disk into a process that has lowered none calls
-    an unbound kernel and crashes (measured: a segmentation fault in `eigh`). Lowering a 2×2
-    Cholesky binds them all (nothing is compiled; ~0.1 s in a fresh process)."""
+    an unbound kernel and crashes (a segmentation fault in `eigh`, tested). Lowering a 2×2
+    Cholesky binds them all; nothing is compiled."""
     global _LAPACK_BOUND
     if not _LAPACK_BOUND:
         import jax

@@ -115,7 +115,7 @@ def run_reconstruct(
     capture_path = Path(capture_path)
     applied = {"calibration": calibration, "registration": registration}
     # the inputs' record (each file up to 64 MB hashed whole) is made while the reconstruction
-    # computes: hashing and reading release the GIL (a 10 Hz capture: ~17 ms a map)
+    # computes: hashing and reading release the GIL (docs/performance.md)
     with concurrent.futures.ThreadPoolExecutor(1) as pool:
         record = pool.submit(provenance, capture_path, options, applied)
         if scheduler is not None:
