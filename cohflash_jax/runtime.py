@@ -178,13 +178,12 @@ class ExecutableCache:
         return self._environment
 
     def key(self, fun, static, treedef, signature, quick: bool = False) -> str | None:
-        """The entry's file name, or None where the static half or the arguments' structure
-        (whose nodes hold the modules' static fields) has no stable text."""
+        """The entry's file name, or None where the static leaves (and the array mask:
+        `async_filter_jit`) or the arguments' structure, whose nodes hold the modules' static
+        fields, have no stable text."""
         import hashlib
 
-        import jax
-
-        text = f"{str(jax.tree.structure(static))}{jax.tree.leaves(static)!r}|{treedef}"
+        text = f"{static!r}|{treedef}"
         if " at 0x" in text:
             return None
         shapes = repr([(shape, dtype, weak, None if sh is None else repr(sh)) for shape, dtype, weak, sh in signature])
