@@ -22,6 +22,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from .chunk_reads import ChunkIndexError, DirectChunkReader
 from .fileio import atomic_path, is_store_folder
 from .hybrid import NOMINAL_PHASES_RAD, Hybrid
 from .instrument import DEFAULT_FIELD_OF_VIEW_DEG, Instrument
@@ -225,6 +226,7 @@ class Capture:
     def __init__(self, path):
         self.path = Path(path)
         self.store = "zarr" if self.path.is_dir() else "hdf5"
+        self._direct: DirectChunkReader | None | bool = False  # False: not looked at yet
         if self.store == "zarr":
             from .capture_zarr import open_zarr_group
 
@@ -425,11 +427,25 @@ class Capture:
         count = len(range(*rows.indices(self.shape[1])))
         if self.store == "zarr":
             out[:, :, :count, :] = self.frames[:, :, rows, :]
+        elif (direct := self.direct_reader()) is not None and direct.covers(rows):
+            direct.read_rows_into(out, rows)
         else:
             self.frames.read_direct(out, np.s_[:, :, rows, :], np.s_[:, :, :count, :])
 
+    def direct_reader(self) -> DirectChunkReader | None:
+        """The frames' `DirectChunkReader` (made on first use), or None where their chunks
+        must be read through HDF5 (compressed, cutting rows, unwritten)."""
+        if self._direct is False:
+            try:
+                self._direct = DirectChunkReader(self._file["frames"], self.path)
+            except ChunkIndexError:
+                self._direct = None
+        return self._direct
+
     def close(self):
         if self.store == "hdf5":
+            if self._direct:
+                self._direct.close()
             self._file.close()
 
     def __enter__(self):

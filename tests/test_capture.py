@@ -73,6 +73,75 @@ def test_read_tile_reads_the_requested_pixels(staircase_capture):
         assert np.all(buf[:, :, 4:] == 7)
 
 
+def _chunked(path, frames, unwritten=False, **dataset_options):
+    """A minimal valid capture whose frames are stored as `dataset_options` say (h5py, not
+    `write_capture`); `unwritten`: only the first frame's chunks are written."""
+    n, h, w = frames.shape[1:]
+    with h5py.File(path, "w") as f:
+        f.attrs.update({"format": "cohflash-capture", "format_version": 1, "exposure_s": 4e-3})
+        f.attrs.update({"frame_rate_hz": 150.0, "wavelength_m": 1.55e-6})
+        f["frequencies_hz"] = 1e8 + 2e6 * np.arange(n)
+        f["hybrid_phases_rad"] = np.array([0, np.pi / 2, np.pi, 1.5 * np.pi])
+        d = f.create_dataset("frames", shape=frames.shape, dtype=frames.dtype, **dataset_options)
+        if unwritten:
+            d[:, :1] = frames[:, :1]
+        else:
+            d[...] = frames
+    return path
+
+
+@pytest.mark.parametrize(
+    "options,tile_rows,direct",
+    [
+        ({"chunks": (1, 4, 8, 7)}, 8, True),  # one chunk a band of a tile; the last frames' chunk part-filled
+        ({"chunks": (1, 4, 8, 7)}, 16, True),  # two chunk bands a tile: a chunk's frames land apart
+        ({"chunks": (1, 3, 5, 7)}, 5, True),  # 22 rows: the last tile cuts a chunk, read through HDF5
+        ({"chunks": (1, 4, 8, 7), "compression": "gzip"}, 8, False),
+        ({"chunks": (1, 4, 8, 4)}, 8, False),  # chunks cut rows
+        ({}, 8, False),  # contiguous
+        ({"chunks": (1, 4, 8, 7), "unwritten": True}, 8, False),  # HDF5's fill value stands in
+    ],
+)
+def test_direct_chunk_reads_equal_hdf5_reads(tmp_path, options, tile_rows, direct):
+    """Tiles read straight from the file's chunks (`chunk_reads`) are HDF5's, byte for byte,
+    into a reused buffer with stale contents; layouts that cannot be read so go through HDF5."""
+    rng = np.random.default_rng(5)
+    frames = rng.integers(0, 2**16, (4, 10, 22, 7), dtype=np.uint16)
+    path = _chunked(tmp_path / "c.h5", frames, **options)
+    if options.get("unwritten"):
+        frames[:, 1:] = 0  # HDF5's fill value
+    with Capture(path) as cap:
+        assert (cap.direct_reader() is not None) == direct
+        assert not direct or cap.direct_reader().covers(slice(0, tile_rows))
+        buf = np.full((4, 10, tile_rows, 7), 7, np.uint16)
+        for r0 in range(0, 22, tile_rows):
+            r1 = min(22, r0 + tile_rows)
+            cap.read_tile_into(buf, slice(r0, r1))
+            np.testing.assert_array_equal(buf[:, :, : r1 - r0], frames[:, :, r0:r1])
+
+
+def test_block_reader_reads_over_a_tile_only_once_it_is_released(tmp_path):
+    """A tile still aliased by dispatched work (`hold_last(True)`) keeps its buffer: the next
+    tile goes into another; a released one's buffer takes the next tile (one buffer in all)."""
+    from cohflash_jax.reconstruct import BlockReader
+
+    frames = np.random.default_rng(6).integers(0, 2**16, (4, 10, 22, 7), dtype=np.uint16)
+    with Capture(_chunked(tmp_path / "c.h5", frames, chunks=(1, 4, 8, 7))) as cap:
+        reader = BlockReader(cap, 8)
+        first = reader.read(0)
+        reader.hold_last(False)
+        second = reader.read(8)
+        assert np.shares_memory(first, second) and len(reader.buffers) == 1
+        reader.hold_last(True)
+        third = reader.read(16)
+        assert not np.shares_memory(second, third) and len(reader.buffers) == 2
+        np.testing.assert_array_equal(second.reshape(4, 10, 8, 7), frames[:, :, 8:16])  # intact
+        np.testing.assert_array_equal(third.reshape(4, 10, 8, 7)[:, :, :6], frames[:, :, 16:])
+        assert not third.reshape(4, 10, 8, 7)[:, :, 6:].any()  # the short last tile padded with zeros
+        reader.hold_last(True)
+        assert np.shares_memory(reader.read(0), second) and len(reader.buffers) == 2
+
+
 def _write(path, **over):
     n, h, w = 8, 2, 3
     f = h5py.File(path, "w")

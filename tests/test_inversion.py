@@ -341,7 +341,11 @@ def test_sub_tiles_give_the_same_pixels_as_one_tile(paper_instrument, planar_mon
     whole = {
         k: np.asarray(v) for k, v in process_tile(plan, jax.numpy.asarray(frames), jax.numpy.asarray(dark)).items()
     }
-    parts = TileDispatcher(plan, sub_px=24).dispatch(frames, dark).gather()  # 24 + 24 + 16 (padded to 24)
+    pending = TileDispatcher(plan, sub_px=24).dispatch(frames, dark)  # 24 + 24 + 16 (padded to 24)
+    assert not pending.holds_frames  # pieces are copies: the frames' buffer may take the next tile
+    parts = pending.gather()
+    contiguous = np.ascontiguousarray(frames)
+    assert TileDispatcher(plan, sub_px=contiguous.shape[-1]).dispatch(contiguous, dark).holds_frames
     assert parts.keys() == whole.keys()
     assert parts["fit_status"][5] == Status.DEAD and parts["valid"].sum() == frames.shape[-1] - 1
     np.testing.assert_array_equal(parts["fit_status"], whole["fit_status"])

@@ -165,6 +165,11 @@ class TileSource:
         block[:, : r1 - r0] = arr[:, r0:r1]
         return block.reshape(4, self.rows * self.w)
 
+    def hold_last(self, held: bool) -> None:
+        """Whether the last tile's frames are still in use (`BlockReader.hold_last`)."""
+        if self.reader is not None:
+            self.reader.hold_last(held)
+
     def inputs(self, r0: int) -> tuple:
         """(r1, frames (4, N, P), data status (P,) or None, dark (4, P), gain (4, P)) of the tile at row r0."""
         r1 = min(self.h, r0 + self.rows)
@@ -247,6 +252,7 @@ def reconstruct_capture(
             r1 = min(r1, band_end)
             # dispatched asynchronously: the next tile is read while this one computes
             tile = dispatcher.dispatch(block, d, data_status, g)
+            source.hold_last(tile.holds_frames)
             if pending is not None:
                 collect(pending, bar)
             pending = (tile, r0, r1)

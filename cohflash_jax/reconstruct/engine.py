@@ -1,6 +1,6 @@
 """Streaming a capture through the sub-tile programs with bounded memory.
 
-Row tiles are read into two reused buffers (`BlockReader`); each tile is cut into sub-tiles
+Row tiles are read into reused buffers (`BlockReader`); each tile is cut into sub-tiles
 of a few hundred pixels (`sub_tile_pixels`) whose frames fit in cache, dispatched
 asynchronously and in turn to the stream devices (`TileDispatcher`); a tile is gathered
 (`PendingTile.gather`) while the next one is read and computed. On a GPU a tile is one piece.
@@ -76,6 +76,7 @@ class PendingTile:
 
     parts: list
     num_pixels: int
+    holds_frames: bool = True  # the device arrays may alias the host frames until gathered
 
     def gather(self) -> dict:
         """Join the sub-tiles' results → dict of (P,) NumPy arrays (blocks until computed)."""
@@ -113,7 +114,8 @@ class TileDispatcher:
             return jax.device_put(part, device) if several else part
 
         parts = []
-        for k in range(-(-p // sub)):
+        pieces = -(-p // sub)
+        for k in range(pieces):
             device = self.devices[k % len(self.devices)] if several else None
             plan, carrier = self.placed[k % len(self.placed)]
             parts.append(
@@ -126,29 +128,40 @@ class TileDispatcher:
                     carrier,
                 )
             )
-        return PendingTile(parts, p)
+        # host frames cut into several pieces were copied (`aligned_copy`); one whole piece is
+        # aliased on the CPU, and on a GPU its transfer may still be reading them
+        return PendingTile(parts, p, holds_frames=not (isinstance(frames, np.ndarray) and pieces > 1))
 
 
 class BlockReader:
-    """Row tiles of a capture read into two reused buffers. On the CPU a contiguous NumPy
-    array can become a device array without a copy (JAX aliases 64-byte-aligned buffers), so
-    a buffer is reused only after the tile read into it has been gathered (the caller
-    gathers tile k before reading tile k + 2). Allocating a fresh ~250 MB array per tile costs
-    more than the read itself on a cold machine (first touch of its memory)."""
+    """Row tiles of a capture read into reused buffers: allocating a fresh ~250 MB array per
+    tile costs more than the read itself on a cold machine (first touch of its memory).
+
+    A tile cut into sub-tiles is copied out of its buffer when dispatched, so the next tile
+    is read into the same buffer. A tile dispatched whole may stay aliased by its device
+    arrays (a contiguous NumPy array becomes a CPU device array without a copy) until it is
+    gathered: the caller says so (`hold_last`), and the next tile goes into a second buffer
+    (the caller gathers tile k before reading tile k + 2)."""
 
     def __init__(self, capture: Capture, rows: int):
         n, h, w = capture.shape
         self.capture, self.rows, self.h = capture, rows, h
         self.shape, self.dtype = (4, n, rows, w), capture.frames.dtype
-        self.buffers = []  # made as needed: a run of one tile needs one
-        self.count = 0
+        self.buffers = []  # made as needed: at most two
+        self.last = self.held = None
+
+    def hold_last(self, held: bool) -> None:
+        """Whether the last tile read is still in use (its buffer not to be read into next)."""
+        self.held = self.last if held else None
 
     def read(self, r0: int) -> np.ndarray:
         r1 = min(self.h, r0 + self.rows)
-        if len(self.buffers) <= self.count % 2:
+        free = [k for k in range(len(self.buffers)) if k != self.held]
+        if not free:
             self.buffers.append(np.zeros(self.shape, self.dtype))
-        buf = self.buffers[self.count % 2]
-        self.count += 1
+            free = [len(self.buffers) - 1]
+        self.last = free[0]
+        buf = self.buffers[self.last]
         if r1 - r0 < self.rows:
             buf[:, :, r1 - r0 :] = 0  # pad the last tile so every tile has one compiled shape
         self.capture.read_tile_into(buf, slice(r0, r1))
