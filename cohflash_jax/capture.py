@@ -428,7 +428,10 @@ class Capture:
         if self.store == "zarr":
             out[:, :, :count, :] = self.frames[:, :, rows, :]
         elif (direct := self.direct_reader()) is not None and direct.covers(rows):
-            direct.read_rows_into(out, rows)
+            try:
+                direct.read_rows_into(out, rows)
+            except OSError as exc:  # e.g. the file truncated since it was opened
+                self._fail(f"frames of rows {rows.start}:{rows.stop} could not be read ({exc})")
         else:
             self.frames.read_direct(out, np.s_[:, :, rows, :], np.s_[:, :, :count, :])
 

@@ -78,9 +78,7 @@ class DirectChunkReader:
                     want = sum(v.nbytes for v in views)
                     got = os.preadv(self.fd, views, self.offsets[(c, n0, band, 0)])
                     if got != want:
-                        raise OSError(
-                            f"short read of chunk {(c, n0, band, 0)}: {got} of {want} bytes (truncated file?)"
-                        )
+                        raise OSError(f"chunk {(c, n0, band, 0)}: {got} of {want} bytes read (a truncated file?)")
 
     def close(self):
         if self.fd is not None:

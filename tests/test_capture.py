@@ -1,5 +1,7 @@
 """Capture format v1: the CLI writes valid files; the reader rejects bad ones clearly."""
 
+import os
+
 import h5py
 import numpy as np
 import pytest
@@ -140,6 +142,18 @@ def test_block_reader_reads_over_a_tile_only_once_it_is_released(tmp_path):
         assert not third.reshape(4, 10, 8, 7)[:, :, 6:].any()  # the short last tile padded with zeros
         reader.hold_last(True)
         assert np.shares_memory(reader.read(0), second) and len(reader.buffers) == 2
+
+
+def test_a_capture_truncated_after_it_was_opened_fails_naming_the_rows(tmp_path):
+    frames = np.random.default_rng(7).integers(0, 2**16, (4, 10, 16, 7), dtype=np.uint16)
+    path = _chunked(tmp_path / "c.h5", frames, chunks=(1, 4, 8, 7))
+    with Capture(path) as cap:
+        last = max(cap.direct_reader().offsets.values())
+        os.truncate(path, last + 10)  # the last chunk cut short
+        buf = np.zeros((4, 10, 8, 7), np.uint16)
+        cap.read_tile_into(buf, slice(0, 8))  # that chunk's rows are elsewhere: still read
+        with pytest.raises(CaptureError, match=r"rows 8:16 could not be read .*bytes read"):
+            cap.read_tile_into(buf, slice(8, 16))
 
 
 def _write(path, **over):
