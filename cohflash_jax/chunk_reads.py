@@ -28,6 +28,8 @@ class DirectChunkReader:
 
     def __init__(self, dataset: h5py.Dataset, path: os.PathLike):
         shape, chunks = dataset.shape, dataset.chunks
+        if not hasattr(os, "preadv"):  # e.g. Windows
+            raise ChunkIndexError("this system has no preadv")
         if chunks is None or len(shape) != 4:
             raise ChunkIndexError("frames are not chunked")
         plist = dataset.id.get_create_plist()
