@@ -16,6 +16,7 @@ simulation's settings).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -226,7 +227,6 @@ class Capture:
     def __init__(self, path):
         self.path = Path(path)
         self.store = "zarr" if self.path.is_dir() else "hdf5"
-        self._direct: DirectChunkReader | None | bool = False  # False: not looked at yet
         if self.store == "zarr":
             from .capture_zarr import open_zarr_group
 
@@ -427,7 +427,7 @@ class Capture:
         count = len(range(*rows.indices(self.shape[1])))
         if self.store == "zarr":
             out[:, :, :count, :] = self.frames[:, :, rows, :]
-        elif (direct := self.direct_reader()) is not None and direct.covers(rows):
+        elif (direct := self.direct_reader) is not None and direct.covers(rows):
             try:
                 direct.read_rows_into(out, rows)
             except OSError as exc:  # e.g. the file truncated since it was opened
@@ -435,20 +435,19 @@ class Capture:
         else:
             self.frames.read_direct(out, np.s_[:, :, rows, :], np.s_[:, :, :count, :])
 
+    @functools.cached_property
     def direct_reader(self) -> DirectChunkReader | None:
         """The frames' `DirectChunkReader` (made on first use), or None where their chunks
         must be read through HDF5 (compressed, cutting rows, unwritten)."""
-        if self._direct is False:
-            try:
-                self._direct = DirectChunkReader(self._file["frames"], self.path)
-            except ChunkIndexError:
-                self._direct = None
-        return self._direct
+        try:
+            return DirectChunkReader(self._file["frames"], self.path)
+        except ChunkIndexError:
+            return None
 
     def close(self):
         if self.store == "hdf5":
-            if self._direct:
-                self._direct.close()
+            if self.__dict__.get("direct_reader") is not None:
+                self.direct_reader.close()
             self._file.close()
 
     def __enter__(self):

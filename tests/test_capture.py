@@ -113,8 +113,8 @@ def test_direct_chunk_reads_equal_hdf5_reads(tmp_path, options, tile_rows, direc
     if options.get("unwritten"):
         frames[:, 1:] = 0  # HDF5's fill value
     with Capture(path) as cap:
-        assert (cap.direct_reader() is not None) == direct
-        assert not direct or cap.direct_reader().covers(slice(0, tile_rows))
+        assert (cap.direct_reader is not None) == direct
+        assert not direct or cap.direct_reader.covers(slice(0, tile_rows))
         buf = np.full((4, 10, tile_rows, 7), 7, np.uint16)
         for r0 in range(0, 22, tile_rows):
             r1 = min(22, r0 + tile_rows)
@@ -148,7 +148,7 @@ def test_a_capture_truncated_after_it_was_opened_fails_naming_the_rows(tmp_path)
     frames = np.random.default_rng(7).integers(0, 2**16, (4, 10, 16, 7), dtype=np.uint16)
     path = _chunked(tmp_path / "c.h5", frames, chunks=(1, 4, 8, 7))
     with Capture(path) as cap:
-        last = max(cap.direct_reader().offsets.values())
+        last = max(cap.direct_reader.offsets.values())
         os.truncate(path, last + 10)  # the last chunk cut short
         buf = np.zeros((4, 10, 8, 7), np.uint16)
         cap.read_tile_into(buf, slice(0, 8))  # that chunk's rows are elsewhere: still read
