@@ -4,6 +4,7 @@ registration files (`open_and_reconstruct`). Each takes the instrument it recons
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import json
 import math
@@ -237,11 +238,21 @@ def reconstruct_capture(
             band[r0 - band_start : r1 - band_start] = arr
         bar.update((r1 - r0) * w)
 
-    # the first tile is read before the plan is made: "auto" carrier alignment looks at it
+    # the first tile is read before the plan is made: "auto" carrier alignment looks at it.
+    # Its survey (NumPy) runs in a thread while the first tile is dispatched as if static,
+    # which "auto" finds in most captures; where it finds a drift, the tile is dispatched
+    # again with it, before the next tile is read over its buffer
     first = source.inputs(band_start)
-    if alignment is None:
+    survey = None
+    if alignment is None and options.carrier == "auto":
+        pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="carrier-survey")
+        survey = pool.submit(align_carrier, options, instrument, first[1], first[3], first[4])
+        pool.shutdown(wait=False)  # its thread ends with the survey
+        alignment = choose_carrier_alignment("static")
+    elif alignment is None:
         alignment = align_carrier(options, instrument, first[1], first[3], first[4])
-    plan, dispatcher = plan_and_dispatcher(instrument, options, saturation, alignment, sub_tile_pixels(rows * w, n))
+    sub_px = sub_tile_pixels(rows * w, n)
+    plan, dispatcher = plan_and_dispatcher(instrument, options, saturation, alignment, sub_px)
     total = (band_end - band_start) * w
     bar = progress_bar(total=total, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True)
     # the whole capture's size decides, so that every band of a distributed run decides alike
@@ -252,6 +263,11 @@ def reconstruct_capture(
             r1 = min(r1, band_end)
             # dispatched asynchronously: the next tile is read while this one computes
             tile = dispatcher.dispatch(block, d, data_status, g)
+            if survey is not None:
+                alignment, survey = survey.result(), None
+                if alignment.mode != "static":
+                    plan, dispatcher = plan_and_dispatcher(instrument, options, saturation, alignment, sub_px)
+                    tile = dispatcher.dispatch(block, d, data_status, g)
             source.hold_last(tile.holds_frames)
             if pending is not None:
                 collect(pending, bar)
