@@ -39,12 +39,12 @@ class DirectChunkReader:
             raise ChunkIndexError(f"chunks {chunks} do not span whole rows of one CCD")
         if not dataset.dtype.isnative:
             raise ChunkIndexError(f"frames are stored {dataset.dtype.str}, not in this machine's byte order")
-        self.shape, self.chunks, self.dtype = shape, chunks, dataset.dtype
-        self.chunk_bytes = int(np.prod(chunks)) * dataset.dtype.itemsize
+        self.shape, self.chunks = shape, chunks
+        chunk_bytes = int(np.prod(chunks)) * dataset.dtype.itemsize
         offsets = {}
 
         def visit(info):
-            if info.size != self.chunk_bytes or info.filter_mask:
+            if info.size != chunk_bytes or info.filter_mask:
                 raise ChunkIndexError(f"chunk {info.chunk_offset} is stored in {info.size} bytes")
             offsets[info.chunk_offset] = info.byte_offset
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from .calibration_file import PixelMaps
 from .instrument import Instrument
-from .reconstruct import ReconstructOptions, build_plan, program_plan
+from .reconstruct import ReconstructOptions, build_plan
 from .status import UNUSABLE_DATA, Status
 from .uncertainty import LABELS, PARAMETERS, Posterior, check_max_steps, pixel_data, sample_pixel
 
@@ -75,9 +75,7 @@ def run_pixels(
     rows, cols = np.asarray([r for r, _ in pixels]), np.asarray([c for _, c in pixels])
     frames = np.stack([capture.frames[:, :, r, c] for r, c in pixels], axis=-1)  # (4, N, P)
     per_pixel = lambda a: None if a is None else jnp.asarray(np.asarray(a, np.float32)[:, rows, cols])
-    data = pixel_data(
-        program_plan(plan), jnp.asarray(frames), options.window_bins, per_pixel(maps.offset_dn), per_pixel(maps.gain)
-    )
+    data = pixel_data(plan, jnp.asarray(frames), options.window_bins, per_pixel(maps.offset_dn), per_pixel(maps.gain))
     status = np.asarray(data.status)
     unusable = np.isin(status, UNUSABLE_DATA)
     skipped = [(*pixels[p], Status(int(status[p])).message) for p in np.flatnonzero(unusable)]

@@ -32,7 +32,7 @@ from .constants import SPEED_OF_LIGHT_M_PER_S as C
 from .estimate.coarse import unitary_rfft
 from .estimate.iq import align_carrier_static, derotate, iq_from_frames
 from .estimate.window_model import UniformModel, bin_weights, window_tables
-from .reconstruct import TilePlan, process_tile
+from .reconstruct import TilePlan, process_tile, program_plan
 from .status import Status
 
 PARAMETERS = ("depth_offset_mm", "amplitude", "carrier_phase_rad")
@@ -52,10 +52,16 @@ class PixelData(eqx.Module):
     status: jax.Array
 
 
-@eqx.filter_jit
 def pixel_data(plan: TilePlan, frames, window_bins: int, dark=None, gain=None) -> PixelData:
     """ML results and the DFT windows (`window_bins` wide) of r and q for pixels (4, N, P),
-    with their per-pixel offsets and gains (4, P) where given → PixelData (leading P)."""
+    with their per-pixel offsets and gains (4, P) where given → PixelData (leading P). The
+    plan goes in as the programs take it (`program_plan`): another calibration's τ_sys or
+    another threshold runs the program already compiled."""
+    return _pixel_data(program_plan(plan), frames, window_bins, dark, gain)
+
+
+@eqx.filter_jit
+def _pixel_data(plan: TilePlan, frames, window_bins: int, dark=None, gain=None) -> PixelData:
     out = process_tile(plan, frames, dark, None, gain)
     n = frames.shape[1]
     i, q = iq_from_frames(frames.astype(jnp.float32), plan.iq.weights, plan.iq.bias, dark, gain)
@@ -315,14 +321,14 @@ def sample_pixels(
     frames (4, N, H, W) or (4, N, P), under the nominal calibration of `instrument`: what
     studies and tests sample (the CLI's `uncertainty` reads a capture file instead).
     `quiet` silences the not-converged warnings (each posterior records it)."""
-    from .reconstruct import ReconstructOptions, build_plan, program_plan
+    from .reconstruct import ReconstructOptions, build_plan
 
     options = ReconstructOptions(method="ml")
     plan = build_plan(instrument, options, float(instrument.sensor.adc_max_dn))
     frames = np.asarray(frames)
     flat = frames.reshape(4, frames.shape[1], -1)
     count = flat.shape[-1] if pixels is None else min(pixels, flat.shape[-1])
-    data = pixel_data(program_plan(plan), jnp.asarray(flat[:, :, :count]), options.window_bins)
+    data = pixel_data(plan, jnp.asarray(flat[:, :, :count]), options.window_bins)
     rng = np.random.default_rng(0) if rng is None else rng
     posts = []
     with warnings.catch_warnings():
