@@ -35,13 +35,21 @@ NEWTON_RTOL = 1e-5
 
 def polish_depth(cost, start_mm, *, max_steps: int, tolerance_mm=STEP_TOLERANCE_FLOOR_MM) -> Polish:
     """Minimise a 1-D least-squares cost (depth offset in mm) from a start inside the right
-    basin: Newton's method on its slope, with the exact second derivative (forward over
-    forward). Gauss–Newton drops the residual-curvature term, which at finite SNR makes its
-    convergence linear: measured on the 35-frame 10 Hz mode (2560 px), Gauss–Newton took 5.4
-    steps on average and 12–16 for the slowest pixel of a batch — and a vmapped solve runs as
-    long as its slowest pixel — against 2.2 and 3–5 for Newton, to the same depths (≤ 1e-4 mm).
-    Newton finds maxima as readily as minima: check the cost at the result with `descended`
-    (the caller evaluates it there anyway).
+    basin: `newton_polish` with the exact second derivative (forward over forward)."""
+    slope = lambda x: jax.jvp(cost, (x,), (jnp.ones_like(x),))[1]
+    return newton_polish(
+        lambda x: jax.jvp(slope, (x,), (jnp.ones_like(x),)), start_mm, max_steps=max_steps, tolerance_mm=tolerance_mm
+    )
+
+
+def newton_polish(slope_and_curvature, start_mm, *, max_steps: int, tolerance_mm=STEP_TOLERANCE_FLOOR_MM) -> Polish:
+    """Newton's method on the slope of a 1-D cost, given a function of the offset returning
+    the cost's first and second derivatives there. Gauss–Newton drops the residual-curvature
+    term, which at finite SNR makes its convergence linear: measured on the 35-frame 10 Hz
+    mode (2560 px), Gauss–Newton took 5.4 steps on average and 12–16 for the slowest pixel of
+    a batch — and a vmapped solve runs as long as its slowest pixel — against 2.2 and 3–5 for
+    Newton, to the same depths (≤ 1e-4 mm). Newton finds maxima as readily as minima: check
+    the cost at the result with `descended` (the caller evaluates it there anyway).
 
     The iteration is optimistix's `Newton` root find on the slope with Cauchy termination,
     written out for one unknown: a step x → x − g/g″ stops once both the step is below
@@ -51,7 +59,6 @@ def polish_depth(cost, start_mm, *, max_steps: int, tolerance_mm=STEP_TOLERANCE_
     inversion several times larger for XLA to compile than the rest together."""
     start = jnp.asarray(start_mm)
     atol = jnp.asarray(tolerance_mm, start.dtype)
-    slope = lambda x: jax.jvp(cost, (x,), (jnp.ones_like(x),))[1]
 
     def keep_going(state):
         _, steps, stop, ok = state
@@ -59,7 +66,7 @@ def polish_depth(cost, start_mm, *, max_steps: int, tolerance_mm=STEP_TOLERANCE_
 
     def newton_step(state):
         x, steps, _, _ = state
-        g, curvature = jax.jvp(slope, (x,), (jnp.ones_like(x),))
+        g, curvature = slope_and_curvature(x)
         step = g / curvature
         small_step = jnp.abs(step) / (atol + NEWTON_RTOL * jnp.abs(x)) < 1
         stop = small_step & (jnp.abs(g) / atol < 1)

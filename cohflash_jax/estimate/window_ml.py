@@ -5,7 +5,7 @@ peak: for a tone in white noise that gives the precision of the full time-domain
 ~1 % of the residuals (docs/physics.md). The model is linear in (c, A), so those are
 projected out: the nonlinear fit is one unknown, the depth offset from the coarse estimate in
 millimetres. A grid of the projected cost over ±1 bin picks the basin of the right likelihood
-ripple (period c/(2 f̄)) before Newton's method polishes it (`polish.polish_depth`). float64
+ripple (period c/(2 f̄)) before Newton's method polishes it (`polish.newton_polish`). float64
 throughout: it is ~20 numbers per pixel.
 """
 
@@ -23,8 +23,18 @@ from jaxtyping import Array, Bool, Complex, Float, Int
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import depth_information, phase_locked_sigma_m, sigma_from_information, well_posed
 from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult, reduced_chi2
-from .polish import STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA, descended, polish_depth
-from .window_model import Phasors, UniformModel, WindowData, WindowTables, bin_weights, shift_phasors, window_tables
+from .polish import STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA, descended, newton_polish
+from .window_model import (
+    Phasors,
+    UniformModel,
+    WindowData,
+    WindowTables,
+    bin_weights,
+    jet_scale,
+    shift_phasors,
+    solve_normal_2x2,
+    window_tables,
+)
 
 
 class PixelFit(eqx.Module):
@@ -47,14 +57,53 @@ class PixelFit(eqx.Module):
         re, im = model.tone_from_phasors(shift_phasors(self.base, rotation), self.tables, max_order)
         return re * self.omega, im * self.omega
 
-    def cost_at(self, model: UniformModel, rotation: Phasors, max_order: int | None = None):
-        """Projected cost: residual energy after the least-squares (c, A)."""
-        _, res_re, res_im = self.data.project(*self.weighted_tone(model, rotation, max_order))
+    def weighted_tone_jets(self, model: UniformModel, offset_mm, derivatives: int):
+        """The ω-weighted tone's jets (Re, Im; value and derivatives per mm) at a depth offset
+        (mm), every order modelled (`UniformModel.tone_jets`)."""
+        rates_per_mm = tuple(1e-3 * rate for rate in model.angle_rates())
+        phasors = shift_phasors(self.base, model.rotation(1e-3 * offset_mm))
+        re, im = model.tone_jets(phasors, self.tables, rates=rates_per_mm, derivatives=derivatives)
+        return jet_scale(self.omega, re), jet_scale(self.omega, im)
+
+    def residual_energy(self, tone_re, tone_im):
+        """Projected cost of a weighted tone: residual energy after the least-squares (c, A)."""
+        _, res_re, res_im = self.data.project(tone_re, tone_im)
         return res_re @ res_re + res_im @ res_im
 
-    def cost(self, model: UniformModel):
-        """The projected cost as a function of the depth offset (mm), every order modelled."""
-        return lambda offset_mm: self.cost_at(model, model.rotation(1e-3 * offset_mm))
+    def cost_at(self, model: UniformModel, rotation: Phasors, max_order: int | None = None):
+        """Projected cost with the phasors moved by `rotation`."""
+        return self.residual_energy(*self.weighted_tone(model, rotation, max_order))
+
+    def slope_and_curvature(self, model: UniformModel):
+        """The projected cost's first and second derivatives in the depth offset (mm), as a
+        function of the offset, for the polish's Newton steps.
+
+        The tone's own derivatives come in closed form (`weighted_tone_jets`). Along the
+        tone's second-order expansion t(s) = t + s·t′ + s²/2·t″ the cost has the cost's first
+        two derivatives at s = 0, and every product it needs (of the DC column, the data and
+        t(s)) is a polynomial in s over the Gram matrix of (dc, y, t, t′, t″): one batched
+        product of the window, then scalar arithmetic. Differentiating the residuals
+        instead made a chain of small reductions that XLA compiles as ~60 separate kernels."""
+
+        def at(offset_mm):
+            (re, d_re, dd_re), (im, d_im, dd_im) = self.weighted_tone_jets(model, offset_mm, 2)
+            g = self.data.gram([(re, im), (d_re, d_im), (dd_re, dd_im)])
+
+            dc, y, t, d1, d2 = WindowData.GRAM_DC, WindowData.GRAM_DATA, WindowData.GRAM_TONE, 3, 4
+
+            def along(s):
+                dc_t = g[dc, t] + s * (g[dc, d1] + 0.5 * s * g[dc, d2])
+                y_t = g[y, t] + s * (g[y, d1] + 0.5 * s * g[y, d2])
+                t_t = g[t, t] + s * (2 * g[t, d1] + s * (g[d1, d1] + g[t, d2] + s * (g[d1, d2] + 0.25 * s * g[d2, d2])))
+                c, a = solve_normal_2x2(g[dc, dc], dc_t, t_t, g[dc, y], y_t)
+                # |y − c·dc − a·t(s)|²
+                return g[y, y] - 2 * (c * g[dc, y] + a * y_t) + c * c * g[dc, dc] + 2 * c * a * dc_t + a * a * t_t
+
+            slope = lambda s: jax.jvp(along, (s,), (jnp.ones_like(s),))[1]
+            origin = jnp.zeros_like(offset_mm)
+            return jax.jvp(slope, (origin,), (jnp.ones_like(origin),))
+
+        return at
 
 
 def prepare_pixel(
@@ -147,15 +196,15 @@ def finish_pixel(
     data = pix.data
 
     def final_fit(offset_mm):
-        """The fit at a depth: (c, A), cost, the weighted tone and its derivative in depth
-        (one JVP: the Jacobian's depth column)."""
-        tone, d_tone_per_mm = jax.jvp(
-            lambda x: pix.weighted_tone(model, model.rotation(1e-3 * x)), (offset_mm,), (jnp.ones_like(offset_mm),)
-        )
-        coef, res_re, res_im = data.project(*tone)
-        return coef, res_re @ res_re + res_im @ res_im, tone, jax.tree.map(lambda v: 1e3 * v, d_tone_per_mm)
+        """The fit at a depth: (c, A), cost, and the Gram matrix of (dc, y, the weighted tone,
+        its derivative in depth: the Jacobian's depth column)."""
+        (re, d_re_per_mm), (im, d_im_per_mm) = pix.weighted_tone_jets(model, offset_mm, 1)
+        g = data.gram([(re, im), (1e3 * d_re_per_mm, 1e3 * d_im_per_mm)])
+        coef = data.coefficients(g)
+        res_re, res_im = data.y_re - data.dc * coef[0] - re * coef[1], data.y_im - im * coef[1]
+        return coef, res_re @ res_re + res_im @ res_im, g
 
-    coefs, finals, tones, d_tones = jax.vmap(final_fit)(offsets_mm)
+    coefs, finals, grams = jax.vmap(final_fit)(offsets_mm)
     oks = solved & descended(finals, pix.ceilings)
     if offsets_mm.shape[0] > 1:
         ranked = jnp.where(jnp.isfinite(finals), finals, jnp.inf)
@@ -166,23 +215,21 @@ def finish_pixel(
     else:  # one basin: no comparison
         best = 0
     pick = lambda tree: jax.tree.map(lambda leaf: leaf[best], tree)
-    offset_mm, ok, steps, coef, cost_final, tone, d_tone = pick(
-        (offsets_mm, oks, num_steps, coefs, finals, tones, d_tones)
-    )
+    offset_mm, ok, steps, coef, cost_final, g = pick((offsets_mm, oks, num_steps, coefs, finals, grams))
     depth = coarse_depth_m + 1e-3 * offset_mm
-    (t_re, t_im), (dt_re, dt_im) = tone, d_tone
     # Fisher information of (depth, c, A): components of a unitary DFT of white noise of
     # variance σ² carry σ²/2 each (the weights ω already account for DC/Nyquist bins).
     # Jacobian columns (in units of the scaled data): depth A·∂tone/∂depth, offset dc, amplitude tone
+    dc, y, tone, d_tone = WindowData.GRAM_DC, WindowData.GRAM_DATA, WindowData.GRAM_TONE, WindowData.GRAM_TONE + 1
     amp = coef[1]
-    tone_sq = t_re @ t_re + t_im @ t_im
-    f_dd = amp**2 * (dt_re @ dt_re + dt_im @ dt_im)
-    f_dc, f_da = amp * (dt_re @ data.dc), amp * (dt_re @ t_re + dt_im @ t_im)
-    f_cc, f_ca, f_aa = data.dc @ data.dc, data.dc @ t_re, tone_sq
+    tone_sq = g[tone, tone]
+    f_dd = amp**2 * g[d_tone, d_tone]
+    f_dc, f_da = amp * g[d_tone, dc], amp * g[d_tone, tone]
+    f_cc, f_ca, f_aa = g[dc, dc], g[dc, tone], tone_sq
     schur_scaled = depth_information(f_dd, f_da, f_aa, f_dc, f_cc, f_ca)
     scale = pix.scale
     sigma = sigma_from_information(schur_scaled * scale**2 / (0.5 * jnp.maximum(noise_var, 1e-30)))
-    data_sq = data.y_re @ data.y_re + data.y_im @ data.y_im
+    data_sq = g[y, y]
     posed = well_posed(amp, tone_sq, data_sq, f_dd, schur_scaled)
     return FitResult(
         depth, coef[0] * scale, amp * scale, sigma, ok & jnp.isfinite(cost_final), steps, cost_final * scale**2, posed
@@ -214,7 +261,7 @@ def refine_ml_uniform(
     """ML depth of a batch of pixels (the leading axis of every array argument) from their DFT
     windows (unitary bins k0..k0+W−1): `prepare_pixel`, the polish, `finish_pixel`.
 
-    The polish (`polish_depth`, up to `max_steps` Newton steps a pixel) runs in two passes:
+    The polish (`newton_polish`, up to `max_steps` Newton steps a pixel) runs in two passes:
     every pixel and candidate for `first_pass_steps` (default `FIRST_PASS_STEPS`), then those
     that hit that limit resume where they stopped, `STRAGGLER_GROUP` at a time, for the
     remaining steps. A pixel's result depends on its own data only, never on its batch. The
@@ -238,7 +285,7 @@ def refine_ml_uniform(
 
     def polish(index, start, steps):
         one = jax.tree.map(lambda leaf: leaf[index], pix)
-        p = polish_depth(one.cost(model), start, max_steps=steps, tolerance_mm=one.tolerance_mm)
+        p = newton_polish(one.slope_and_curvature(model), start, max_steps=steps, tolerance_mm=one.tolerance_mm)
         return p.value, p.succeeded, p.num_steps, p.at_step_limit
 
     first = min(FIRST_PASS_STEPS if first_pass_steps is None else first_pass_steps, max_steps)

@@ -33,6 +33,51 @@ def shift_phasors(phasors: Phasors, rotation: Phasors) -> Phasors:
     return tuple(cmul(p, r) for p, r in zip(phasors, rotation))
 
 
+# Jets: a quantity and its derivatives in one unknown, (value, first, second), truncated to
+# the derivatives asked for; constants multiply them as `jet_scale`.
+
+
+def phasor_jet(z, rate, derivatives: int):
+    """Jets of Re and Im of a unit phasor z = (cos, sin) turning at `rate`: z, iφz, −φ²z."""
+    re, im = z
+    terms = ((re, im), (-rate * im, rate * re), (-(rate**2) * re, -(rate**2) * im))[: derivatives + 1]
+    return tuple(t[0] for t in terms), tuple(t[1] for t in terms)
+
+
+def jet_add(a, b):
+    return tuple(x + y for x, y in zip(a, b))
+
+
+def jet_sub(a, b):
+    return tuple(x - y for x, y in zip(a, b))
+
+
+def jet_scale(constant, a):
+    return tuple(constant * x for x in a)
+
+
+def jet_mul(a, b):
+    """Leibniz's rule: (ab)′ = a′b + ab′, (ab)″ = a″b + 2a′b′ + ab″."""
+    out = (a[0] * b[0],)
+    if len(a) > 1:
+        out += (a[1] * b[0] + a[0] * b[1],)
+    if len(a) > 2:
+        out += (a[2] * b[0] + 2 * a[1] * b[1] + a[0] * b[2],)
+    return out
+
+
+def jet_reciprocal(a, zero_where):
+    """1/a, (1/a)′ = −a′/a², (1/a)″ = 2a′²/a³ − a″/a²; zero where `zero_where` (no 0/0, so
+    gradients stay finite)."""
+    g = jnp.where(zero_where, 0.0, 1 / jnp.where(zero_where, 1.0, a[0]))
+    out = (g,)
+    if len(a) > 1:
+        out += (-a[1] * g * g,)
+    if len(a) > 2:
+        out += ((2 * a[1] * a[1] * g - a[2]) * g * g,)
+    return out
+
+
 class WindowTables(eqx.Module):
     """Per-pixel constants of the DFT bins k0..k0+W−1: cos and sin of b_k = πk/N, and k."""
 
@@ -100,13 +145,32 @@ class UniformModel(eqx.Module):
         """The factors that move `phasors` by `delta_m` of depth: e^{iκδ} for each angle's rate
         κ (rad/m). With xp=np and a fixed δ (the basin grid) they are constants of the
         compiled program."""
+        return tuple((xp.cos(k * delta_m), xp.sin(k * delta_m)) for k in self.angle_rates())
+
+    def angle_rates(self) -> tuple[float, float, float]:
+        """How fast the three `phasors`' angles turn with depth (rad/m): a = πΔfτ, θ = 2πf₀τ
+        and Na, with τ = 2·depth/c."""
         rate_a = 2 * math.pi * self.step_hz / C
-        rates = (rate_a, 4 * math.pi * self.start_hz / C, self.num_frames * rate_a)
-        return tuple((xp.cos(k * delta_m), xp.sin(k * delta_m)) for k in rates)
+        return rate_a, 4 * math.pi * self.start_hz / C, self.num_frames * rate_a
 
     def tone_from_phasors(self, phasors: Phasors, tables: WindowTables, max_order: int | None = None):
         """Real and imaginary parts (each (W,)) of the DFT over the window of
-        Σ_{n≥1} 2 w_n cos(2π n f_m τ) (unit amplitude A), from the depth's `phasors`.
+        Σ_{n≥1} 2 w_n cos(2π n f_m τ) (unit amplitude A), from the depth's `phasors`
+        (`tone_jets` without derivatives)."""
+        (re,), (im,) = self.tone_jets(phasors, tables, max_order)
+        return re, im
+
+    def tone_jets(
+        self,
+        phasors: Phasors,
+        tables: WindowTables,
+        max_order: int | None = None,
+        rates: tuple[float, float, float] | None = None,
+        derivatives: int = 0,
+    ):
+        """The tone's real and imaginary parts as jets (value, first, second derivative; up to
+        `derivatives`) in an offset along which the phasors' angles turn at `rates` (rad per
+        unit of offset: `angle_rates` scaled to the offset's unit).
 
         Each order's cosine is e^{iθ}·D(x) + e^{−iθ}·D(−x) (θ = 2π n f_0 τ, x = n Δf τ), with D
         the `dirichlet_window` kernel. The two kernels share their numerator and per-bin phase,
@@ -116,33 +180,43 @@ class UniformModel(eqx.Module):
 
         Order n's phasors are the first order's to the n-th power, and everything is real
         arithmetic: XLA's CPU float64 sin/cos cost more than the rest of a 17-bin window
-        together (docs/performance.md)."""
+        together (docs/performance.md). A phasor turning at rate φ has derivatives iφ·z and
+        −φ²·z, so the derivatives come in closed form: the polish's Newton steps need the
+        second, and forward-over-forward differentiation of the tone made that program
+        several times the size for XLA to compile."""
         n = self.num_frames
         top = self.weights.shape[0] - 1 if max_order is None else min(max_order, self.weights.shape[0] - 1)
+        rate_a, rate_theta, rate_na = rates if rates is not None else (0.0, 0.0, 0.0)
         e_a, e_theta, e_na = phasors
         e_phase = cmul(cmul(e_theta, e_na), (e_a[0], -e_a[1]))  # e^{i(θ + (N−1)a)}
         pow_a, pow_theta, pow_na, pow_phase = e_a, e_theta, e_na, e_phase
-        acc_re = acc_im = on_re = on_im = 0.0
+        jet = lambda z, rate: phasor_jet(z, rate, derivatives)
+        zero = (0.0,) * (derivatives + 1)
+        acc_re = acc_im = on_re = on_im = zero
         for order in range(1, top + 1):
             if order > 1:
                 pow_a, pow_theta = cmul(pow_a, e_a), cmul(pow_theta, e_theta)
                 pow_na, pow_phase = cmul(pow_na, e_na), cmul(pow_phase, e_phase)
             weight = self.weights[order]
-            w_num = weight * pow_na[1] / math.sqrt(n)  # w_n sin(πNx)/√N
-            u_re, u_im = w_num * pow_phase[0], w_num * pow_phase[1]
-            p, q = pow_a[1] * tables.cos_b, pow_a[0] * tables.sin_b
-            den_pos, den_neg = p - q, p + q  # sin(πx − b_k), sin(πx + b_k)
-            on_pos, on_neg = jnp.abs(den_pos) < 1e-9, jnp.abs(den_neg) < 1e-9
-            g_pos = jnp.where(on_pos, 0.0, 1 / jnp.where(on_pos, 1.0, den_pos))
-            g_neg = jnp.where(on_neg, 0.0, 1 / jnp.where(on_neg, 1.0, den_neg))
-            acc_re = acc_re + u_re * (g_pos + g_neg)
-            acc_im = acc_im + u_im * (g_pos - g_neg)
-            on_amp = weight * math.sqrt(n)
-            rot_re, rot_im = on_amp * pow_theta[0], on_amp * pow_theta[1]
-            on_re = on_re + jnp.where(on_pos | on_neg, rot_re, 0.0)
-            on_im = on_im + jnp.where(on_pos, rot_im, 0.0) - jnp.where(on_neg, rot_im, 0.0)
+            a_re, a_im = jet(pow_a, order * rate_a)
+            _, na_im = jet(pow_na, order * rate_na)
+            phase_re, phase_im = jet(pow_phase, order * (rate_theta + rate_na - rate_a))
+            w_num = jet_scale(weight / math.sqrt(n), na_im)  # w_n sin(πNx)/√N
+            u_re, u_im = jet_mul(w_num, phase_re), jet_mul(w_num, phase_im)
+            p, q = jet_scale(tables.cos_b, a_im), jet_scale(tables.sin_b, a_re)
+            den_pos, den_neg = jet_sub(p, q), jet_add(p, q)  # sin(πx − b_k), sin(πx + b_k)
+            on_pos, on_neg = jnp.abs(den_pos[0]) < 1e-9, jnp.abs(den_neg[0]) < 1e-9
+            g_pos, g_neg = jet_reciprocal(den_pos, on_pos), jet_reciprocal(den_neg, on_neg)
+            acc_re = jet_add(acc_re, jet_mul(u_re, jet_add(g_pos, g_neg)))
+            acc_im = jet_add(acc_im, jet_mul(u_im, jet_sub(g_pos, g_neg)))
+            rot_re, rot_im = (jet_scale(weight * math.sqrt(n), v) for v in jet(pow_theta, order * rate_theta))
+            on_either = on_pos | on_neg
+            on_re = jet_add(on_re, tuple(jnp.where(on_either, v, 0.0) for v in rot_re))
+            on_im = jet_add(on_im, tuple(jnp.where(on_pos, v, 0.0) - jnp.where(on_neg, v, 0.0) for v in rot_im))
         c, s = tables.cos_b, tables.sin_b
-        return c * acc_re - s * acc_im + on_re, s * acc_re + c * acc_im + on_im
+        re = tuple(c * ar - s * ai + o for ar, ai, o in zip(acc_re, acc_im, on_re))
+        im = tuple(s * ar + c * ai + o for ar, ai, o in zip(acc_re, acc_im, on_im))
+        return re, im
 
     def tone_column(self, depth_m, tables: WindowTables, max_order: int | None = None) -> Complex[Array, " W"]:
         """`tone_from_phasors` at a depth, as one complex array."""
@@ -177,6 +251,22 @@ class WindowData(eqx.Module):
     y_re: Float[Array, " W"]
     y_im: Float[Array, " W"]
     dc: Float[Array, " W"]
+
+    # rows of `gram`: the DC column, the data, then the columns passed
+    GRAM_DC, GRAM_DATA, GRAM_TONE = 0, 1, 2
+
+    def gram(self, columns) -> Float[Array, "K K"]:
+        """Gram matrix of (dc, y, *columns), each column a weighted complex column as (Re, Im):
+        every inner product a fit needs, from one product of the window. XLA compiles each
+        separate reduction over the window as a kernel of its own."""
+        rows = [jnp.concatenate([self.dc, jnp.zeros_like(self.dc)]), jnp.concatenate([self.y_re, self.y_im])]
+        vectors = jnp.stack(rows + [jnp.concatenate([re, im]) for re, im in columns])
+        return vectors @ vectors.T
+
+    def coefficients(self, gram):
+        """Least-squares (c, A) on [dc, the first column of `gram`]."""
+        dc, y, tone = self.GRAM_DC, self.GRAM_DATA, self.GRAM_TONE
+        return solve_normal_2x2(gram[dc, dc], gram[dc, tone], gram[tone, tone], gram[dc, y], gram[tone, y])
 
     def project(self, tone_re, tone_im):
         """Least-squares (c, A) on [dc, tone] (both ω-weighted) and the residual parts."""
