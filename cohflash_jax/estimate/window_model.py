@@ -257,11 +257,13 @@ class WindowData(eqx.Module):
 
     def gram(self, columns) -> Float[Array, "K K"]:
         """Gram matrix of (dc, y, *columns), each column a weighted complex column as (Re, Im):
-        every inner product a fit needs, from one product of the window. XLA compiles each
-        separate reduction over the window as a kernel of its own."""
-        rows = [jnp.concatenate([self.dc, jnp.zeros_like(self.dc)]), jnp.concatenate([self.y_re, self.y_im])]
-        vectors = jnp.stack(rows + [jnp.concatenate([re, im]) for re, im in columns])
-        return vectors @ vectors.T
+        every inner product a fit needs, each product computed once (the upper triangle)."""
+        vectors = [(self.dc, None), (self.y_re, self.y_im)] + list(columns)
+        dot = lambda u, v: u[0] @ v[0] + (u[1] @ v[1] if u[1] is not None and v[1] is not None else 0.0)
+        upper = {(i, j): dot(vectors[i], vectors[j]) for i in range(len(vectors)) for j in range(i, len(vectors))}
+        return jnp.stack(
+            [jnp.stack([upper[min(i, j), max(i, j)] for j in range(len(vectors))]) for i in range(len(vectors))]
+        )
 
     def coefficients(self, gram):
         """Least-squares (c, A) on [dc, the first column of `gram`]."""
