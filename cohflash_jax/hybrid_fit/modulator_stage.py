@@ -190,7 +190,8 @@ def _exact_model_depths(f, r, depth_m, delay_offset_s, weights):
             move = jnp.where(h > 0, -g / jnp.where(h > 0, h, 1.0), -jnp.sign(g) * EXACT_DEPTH_MAX_STEP_MM)
             return offset_mm + jnp.clip(move, -EXACT_DEPTH_MAX_STEP_MM, EXACT_DEPTH_MAX_STEP_MM), None
 
-        offset_mm, _ = jax.lax.scan(step, jnp.zeros(()), None, length=EXACT_DEPTH_STEPS)
+        # a start batched like the depth: vmap's scan rule then traces the step once
+        offset_mm, _ = jax.lax.scan(step, 0.0 * depth_p, None, length=EXACT_DEPTH_STEPS)
         return depth_p + 1e-3 * offset_mm
 
     return jax.vmap(pixel, in_axes=(1, 0))(r, depth_m)
