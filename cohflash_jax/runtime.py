@@ -9,6 +9,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 
@@ -489,3 +490,48 @@ def cpu_description() -> str:
     isa = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "SSE/other"
     xla = os.environ.get("XLA_FLAGS", "")
     return f"{model}; {os.cpu_count()} logical CPUs; ISA {isa}" + (f"; XLA_FLAGS={xla}" if xla else "")
+
+
+def open_hdf5_files_for_writing() -> list[str]:
+    """Names of the HDF5 files this process holds open for writing (none where h5py was never
+    imported): such a file is flushed and closed only when its object is destroyed."""
+    h5py = sys.modules.get("h5py")
+    if h5py is None:
+        return []
+    names = []
+    for file_id in h5py.h5f.get_obj_ids(types=h5py.h5f.OBJ_FILE):
+        if file_id.get_intent() != h5py.h5f.ACC_RDONLY:
+            names.append(file_id.name.decode(errors="replace"))
+    return names
+
+
+def exit_process(code: int | None) -> NoReturn:
+    """End a command-line process with exit status `code`, as `sys.exit` would, without the
+    interpreter's teardown where nothing depends on it.
+
+    Teardown destroys every module and object in turn: JAX's client and compiled programs,
+    the buffers of a whole capture, thousands of modules. A `cohflash` command's outputs are
+    complete by then, so it is time the user waits for nothing (docs/performance.md has the
+    measured share). Kept: the atexit handlers run first (logging's flush, JAX's wait for
+    pending effects, finalizers of temporary folders), and the standard streams are flushed.
+    Where teardown still has work to do, `sys.exit` does it: another Python thread running
+    (teardown joins it), an HDF5 file open for writing (teardown closes and flushes it), a
+    stream that cannot be flushed (a closed pipe: Python reports it and sets the status), or
+    an interpreter without `atexit._run_exitfuncs`."""
+    import atexit
+    import threading
+
+    code = 0 if code is None else int(code)
+    others = [t for t in threading.enumerate() if t is not threading.current_thread() and not t.daemon]
+    run_handlers = getattr(atexit, "_run_exitfuncs", None)
+    main_thread = threading.current_thread() is threading.main_thread()
+    if others or run_handlers is None or not main_thread or open_hdf5_files_for_writing():
+        sys.exit(code)
+    run_handlers()
+    try:
+        for stream in (sys.stdout, sys.stderr):
+            if stream is not None and not stream.closed:
+                stream.flush()
+    except (OSError, ValueError):
+        sys.exit(code)
+    os._exit(code)

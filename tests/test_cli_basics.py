@@ -269,3 +269,54 @@ def test_stream_reconstructs_a_sequence_in_one_process_and_goes_on_past_a_bad_ca
     # two captures of one name would overwrite each other: refused before any work
     assert main(["stream", str(captures[0]), str(captures[0]), "--out-dir", str(tmp_path / "again")]) == 2
     assert "would both write" in capsys.readouterr().err
+
+
+def test_the_cohflash_process_ends_with_its_status_and_complete_outputs(tmp_path):
+    """`cohflash` skips the interpreter's teardown (`runtime.exit_process`): the whole process
+    still exits with the command's status, its outputs complete and readable, an error's
+    message printed; where teardown has work left (a thread still running, an HDF5 file open
+    for writing) it is done, not cut off."""
+    import subprocess
+    import sys
+
+    command = [sys.executable, "-m", "cohflash_jax.cli"]
+    capture, depth = tmp_path / "x.h5", tmp_path / "d.h5"
+    for argv in (
+        ["simulate", "planar", "--size", "4x4", "--steps", "64", "--out", str(capture), "--quiet"],
+        ["reconstruct", str(capture), "--out", str(depth), "--method", "dft"],
+    ):
+        done = subprocess.run(command + argv, capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+    assert "valid pixels" in done.stdout  # the summary reached the pipe before the process ended
+    with h5py.File(depth) as f:
+        assert f["depth_m"].shape == (4, 4) and np.all(np.isfinite(f["depth_m"][()]))
+    done = subprocess.run(
+        command + ["reconstruct", str(tmp_path / "missing.h5"), "--out", str(depth)], text=True, capture_output=True
+    )
+    assert done.returncode == 2 and "missing.h5" in done.stderr
+
+    script = (
+        "import sys, threading, time, h5py\n"
+        "from cohflash_jax.runtime import exit_process\n"
+        "mode, target = sys.argv[1:]\n"
+        "if mode == 'thread':  # a non-daemon thread still writing when the command returns\n"
+        "    threading.Thread(target=lambda: (time.sleep(0.5), open(target, 'w').write('done'))).start()\n"
+        "elif mode == 'hdf5':  # a file left open for writing, its data not yet flushed\n"
+        "    f = h5py.File(target, 'w'); f['x'] = list(range(1000))\n"
+        "else:\n"
+        "    import atexit; atexit.register(lambda: open(target, 'w').write('handler ran'))\n"
+        "print('out', end='')\n"
+        "exit_process(3)\n"
+    )
+    (tmp_path / "ends.py").write_text(script)
+    for mode, check in (
+        ("thread", lambda p: p.read_text() == "done"),
+        ("hdf5", lambda p: h5py.File(p)["x"][-1] == 999),
+        ("atexit", lambda p: p.read_text() == "handler ran"),
+    ):
+        target = tmp_path / f"{mode}.out"
+        done = subprocess.run(
+            [sys.executable, str(tmp_path / "ends.py"), mode, str(target)], capture_output=True, text=True
+        )
+        assert done.returncode == 3 and done.stdout == "out", (mode, done.stderr)
+        assert check(target), mode

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from ..fileio import OutputSet
-from ..runtime import CLI_CPU_STREAMS, enable_compilation_cache, use_cpu_streams
+from ..runtime import CLI_CPU_STREAMS, enable_compilation_cache, exit_process, use_cpu_streams
 from . import (
     calibrate,
     convert,
@@ -96,4 +96,11 @@ def main(argv=None) -> int:
         return 130
 
 
-__all__ = ["COMMANDS", "build_parser", "main", "run_reconstruct", "summary"]
+def entry() -> None:
+    """The `cohflash` program: `main` on the command line, then the process ends at once
+    (`runtime.exit_process`: the interpreter's teardown skipped where nothing depends on it).
+    In-process callers (tests, notebooks) call `main`, which returns the exit status."""
+    exit_process(main())
+
+
+__all__ = ["COMMANDS", "build_parser", "entry", "main", "run_reconstruct", "summary"]

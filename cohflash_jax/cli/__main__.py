@@ -1,7 +1,5 @@
 """`python -m cohflash_jax.cli`: the `cohflash` command."""
 
-import sys
+from . import entry
 
-from . import main
-
-sys.exit(main())
+entry()
