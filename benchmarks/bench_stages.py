@@ -3,7 +3,8 @@
 Each round runs two fresh processes on the same capture (in the page cache) and the same
 compilation cache (warm: a run before the rounds fills it; `--cold` empties it each round):
 
-1. the whole command, timed from outside, and from inside: interpreter start (the rest),
+1. the whole command, timed from outside, and from inside: interpreter start and exit (the rest;
+   it ends as `cohflash` does, without the interpreter's teardown),
    imports, backend start, then the command with JAX's own compile events (tracing, lowering,
    XLA compile, XLA cache loads) and the executable cache's loads and compiles; the command's
    own reconstruction seconds; the rest of the command (open, provenance, write, summary);
@@ -41,7 +42,7 @@ t0 = time.perf_counter()
 import cohflash_jax.cli as cli
 t1 = time.perf_counter()
 import jax, jax.monitoring as mon
-from cohflash_jax.runtime import EXECUTABLES, use_cpu_streams
+from cohflash_jax.runtime import EXECUTABLES, exit_process, use_cpu_streams
 use_cpu_streams()
 jax.devices()
 t2 = time.perf_counter()
@@ -63,6 +64,7 @@ print(json.dumps({
     "XLA compile or cache load": events.get("/jax/core/compile/backend_compile_duration", 0.0),
     "executable cache load": EXECUTABLES.load_seconds, "executable compile": EXECUTABLES.compile_seconds,
 }))
+exit_process(0)  # as `cohflash` ends: no interpreter teardown
 """
 
 STEADY = r"""
