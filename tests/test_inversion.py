@@ -771,3 +771,25 @@ def test_candan_interpolation_is_exact_to_a_small_fraction_of_a_bin_and_near_the
     )
     assert freq_only < np.std(err) < 2.0 * freq_only
     assert abs(np.mean(err)) < 4 * np.std(err) / np.sqrt(err.size)
+
+
+@pytest.mark.parametrize("num_frames", [1, 35, 64, 65, 127, 3001])
+def test_frame_extremes_equal_the_highest_and_lowest_frame(num_frames):
+    """The data checks' per-pixel highest and lowest values (dead: equal; saturated: the
+    highest at the ceiling) come from a fold over halves of the frame axis: the same values
+    as a reduction, for odd and even frame counts, integers and floats with ±inf. (A pixel
+    with a NaN is flagged bad data whatever its extremes: XLA's CPU max/min, reduction and
+    elementwise alike, need not propagate NaN.)"""
+    from cohflash_jax.reconstruct.programs import frame_extremes
+
+    rng = np.random.default_rng(num_frames)
+    counts = rng.integers(0, 65536, (4, num_frames, 37), dtype=np.uint16)
+    counts[:, :, 0] = 7  # a dead pixel: every frame alike
+    counts[1, -1, 1] = 65535  # saturated in the last frame only (the odd one out of a fold)
+    counts[2, 0, 2] = 0  # the lowest value in the first frame
+    floats = counts.astype(np.float32)
+    floats[3, -1, 4], floats[1, 0, 5] = np.inf, -np.inf
+    for frames in (counts, floats):
+        high, low = jax.jit(frame_extremes)(jnp.asarray(frames))
+        np.testing.assert_array_equal(np.asarray(high), frames.max(axis=1))
+        np.testing.assert_array_equal(np.asarray(low), frames.min(axis=1))

@@ -49,12 +49,37 @@ def _axis(i, q):
 carrier_axis_program = async_filter_jit(_axis)
 
 
+# `frame_extremes` halves the frame axis by elementwise max/min down to at most this many frames
+# before the last reduction
+EXTREMES_FOLD_TO_FRAMES = 64
+
+
+def frame_extremes(frames):
+    """Each pixel's highest and lowest value over the frames: frames (4, N, P) → (4, P) twice.
+
+    Halved by elementwise max/min of the two halves of the frame axis, then reduced. XLA's
+    CPU reduction over the frame axis of 16-bit integers vectorises under AVX-512 but runs
+    scalar when held to AVX2 (12× slower: most of the I/Q program there); elementwise
+    max/min vectorise on both (docs/performance.md)."""
+
+    def fold(x, op):
+        while x.shape[1] > EXTREMES_FOLD_TO_FRAMES:
+            half = x.shape[1] // 2
+            folded = op(x[:, :half], x[:, half : 2 * half])
+            if x.shape[1] % 2:  # the odd frame out joins the first row
+                folded = folded.at[:, :1].set(op(folded[:, :1], x[:, 2 * half :]))
+            x = folded
+        return x
+
+    return jnp.max(fold(frames, jnp.maximum), axis=1), jnp.min(fold(frames, jnp.minimum), axis=1)
+
+
 def _checks_and_iq(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=None):
     """Data checks and I/Q: frames (4, N, P) → I, Q (N, P) (drift removed where asked) and the
     data flags (dead, saturated, finite), each (P,). It takes the plan's I/Q stage alone, so
     plans that differ only beyond it (another method, sweep geometry or policy) share it."""
     real = jnp.float64 if stage.dtype == "float64" else jnp.float32
-    high, low = jnp.max(frames, axis=1), jnp.min(frames, axis=1)  # (4, P)
+    high, low = frame_extremes(frames)  # (4, P)
     dead = jnp.any(high == low, axis=0)
     saturated = (
         jnp.zeros(dead.shape, bool) if stage.saturation_dn is None else jnp.any(high >= stage.saturation_dn, axis=0)
