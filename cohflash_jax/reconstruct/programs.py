@@ -49,9 +49,9 @@ def _axis(i, q):
 carrier_axis_program = async_filter_jit(_axis)
 
 
-# `frame_extremes` halves the frame axis by elementwise max/min down to at most this many frames
+# `frame_extremes` halves the frame axis by elementwise max/min down to fewer than this many frames
 # before the last reduction
-EXTREMES_FOLD_TO_FRAMES = 64
+EXTREMES_FOLD_TO_FRAMES = 16
 
 
 def frame_extremes(frames):
@@ -59,19 +59,22 @@ def frame_extremes(frames):
 
     Halved by elementwise max/min of the two halves of the frame axis, then reduced. XLA's
     CPU reduction over the frame axis of 16-bit integers vectorises under AVX-512 but runs
-    scalar when held to AVX2 (12× slower: most of the I/Q program there); elementwise
-    max/min vectorise on both (docs/performance.md)."""
+    scalar when held to AVX2 (12× slower: most of the long sweeps' I/Q program there);
+    elementwise max/min vectorise on both (docs/performance.md). A NaN need not propagate."""
 
-    def fold(x, op):
-        while x.shape[1] > EXTREMES_FOLD_TO_FRAMES:
+    def fold(x, op, reduce):
+        odd_ones = []  # the frame left over by each halving of an odd count, joined at the end
+        while x.shape[1] >= EXTREMES_FOLD_TO_FRAMES:
             half = x.shape[1] // 2
-            folded = op(x[:, :half], x[:, half : 2 * half])
-            if x.shape[1] % 2:  # the odd frame out joins the first row
-                folded = folded.at[:, :1].set(op(folded[:, :1], x[:, 2 * half :]))
-            x = folded
-        return x
+            if x.shape[1] % 2:
+                odd_ones.append(x[:, 2 * half])
+            x = op(x[:, :half], x[:, half : 2 * half])
+        out = reduce(x, axis=1)
+        for frame in odd_ones:
+            out = op(out, frame)
+        return out
 
-    return jnp.max(fold(frames, jnp.maximum), axis=1), jnp.min(fold(frames, jnp.minimum), axis=1)
+    return fold(frames, jnp.maximum, jnp.max), fold(frames, jnp.minimum, jnp.min)
 
 
 def _checks_and_iq(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=None):
@@ -79,17 +82,24 @@ def _checks_and_iq(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=No
     data flags (dead, saturated, finite), each (P,). It takes the plan's I/Q stage alone, so
     plans that differ only beyond it (another method, sweep geometry or policy) share it."""
     real = jnp.float64 if stage.dtype == "float64" else jnp.float32
-    high, low = frame_extremes(frames)  # (4, P)
+    floating = jnp.issubdtype(frames.dtype, jnp.floating)
+    finite = jnp.all(jnp.isfinite(frames), axis=(0, 1)) if floating else jnp.ones(frames.shape[-1], bool)
+    values = (jnp.where(jnp.isfinite(frames), frames, 0.0) if floating else frames).astype(real)
+    # each pixel's highest and lowest value (a pixel with a non-finite value is bad data
+    # whatever they are). A short sweep's program (fused with the carrier axis) takes them
+    # from the converted values its I/Q reads anyway, where the conversion is exact; a long
+    # sweep's from the frames as stored (`frame_extremes`): measured fastest each way, under
+    # AVX-512 and AVX2 (docs/performance.md)
+    exact = jnp.dtype(frames.dtype).itemsize <= (2 if not floating else jnp.dtype(real).itemsize)
+    if frames.shape[1] < SPLIT_AXIS_MIN_FRAMES and exact:
+        high, low = jnp.max(values, axis=1), jnp.min(values, axis=1)  # (4, P)
+    else:
+        high, low = frame_extremes(frames)
     dead = jnp.any(high == low, axis=0)
     saturated = (
         jnp.zeros(dead.shape, bool) if stage.saturation_dn is None else jnp.any(high >= stage.saturation_dn, axis=0)
     )
-    if jnp.issubdtype(frames.dtype, jnp.floating):
-        finite = jnp.all(jnp.isfinite(frames), axis=(0, 1))
-        frames = jnp.where(jnp.isfinite(frames), frames, 0.0)
-    else:
-        finite = jnp.ones(dead.shape, bool)
-    i, q = iq_from_frames(frames.astype(real), stage.weights, stage.bias, dark, gain)  # (N, P) each
+    i, q = iq_from_frames(values, stage.weights, stage.bias, dark, gain)  # (N, P) each
     if carrier_phase_rad is not None:
         i, q = derotate(i, q, jnp.asarray(carrier_phase_rad, i.dtype)[:, None])
     if stage.tracking:  # remove a slow carrier drift first (turbulence)
