@@ -72,11 +72,12 @@ def newton_polish(slope_and_curvature, start_mm, *, max_steps: int, tolerance_mm
         stop = small_step & (jnp.abs(g) / atol < 1)
         return x - step, steps + 1, stop, jnp.isfinite(x)
 
-    # the counters are derived from the start, so under `vmap` every carry is batched from the
-    # outset and the while loop's batching rule traces the body once, not again for each
-    # carry that turns out batched
+    # the step count (0) and the stop flag (False) are derived from the start, so under `vmap`
+    # every carry is batched from the outset and the while loop's batching rule traces the
+    # body once, not again for each carry that turns out batched (`jnp.zeros_like` of a
+    # batched value is not batched)
     finite = jnp.isfinite(start)
-    init = (start, finite.astype(jnp.int32) * 0, ~(finite | ~finite), finite)
+    init = (start, finite.astype(jnp.int32) & 0, finite & False, finite)
     value, steps, stop, ok = jax.lax.while_loop(keep_going, newton_step, init)
     return Polish(value, ok & stop, steps, ok & ~stop)
 
