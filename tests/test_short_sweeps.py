@@ -91,7 +91,7 @@ def test_table_path_is_used_for_short_uniform_ml_only(comb):
 
 def test_table_fit_matches_the_time_domain_ml_fit(comb):
     """Same pixels, same likelihood: the table fit (grid product, polynomial polish) and
-    `refine_time_domain` (explicit cosines per frame, its own basin grid) agree to 1e-3 σ in
+    `refine_time_domain` (the tone per frame, its own basin grid) agree to 1e-3 σ in
     depth and 1e-4 in amplitude and σ; at zero noise both are exact to 0.1 µm (at the window's
     edge, where the comb's model is mirror-symmetric, to ~10 nm; elsewhere to ~1 nm)."""
     inst, plan = comb

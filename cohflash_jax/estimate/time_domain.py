@@ -15,17 +15,47 @@ from jaxtyping import Array, Float
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import depth_information, sigma_from_information, well_posed
 from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult, best_of, reduced_chi2
-from .polish import descended, polish_depth
+from .polish import descended, newton_polish
 from .window_ml import grid_for
-from .window_model import solve_normal_2x2
+from .window_model import (
+    GRAM_DATA,
+    GRAM_DC,
+    GRAM_TONE,
+    cmul,
+    gram_matrix,
+    jet_add,
+    jet_scale,
+    phasor_jet,
+    projected_cost,
+    projected_cost_slope_and_curvature,
+    solve_normal_2x2,
+)
 
 
-def _project(design, y):
-    """Least-squares (c, A) for a 2-column real design (explicit 2×2 normal equations,
-    ridge-stabilised so a vanishing tone column gives A = 0, not NaN)."""
-    a, b = design[:, 0], design[:, 1]
-    coef = solve_normal_2x2(a @ a, a @ b, b @ b, a @ y, b @ y)
-    return coef, y - design @ coef
+def first_order_phasor(frequencies_hz, delay_s):
+    """e^{i2π f_m τ} as (cos, sin), the angle reduced modulo 2π in float64 first."""
+    cycles = frequencies_hz * delay_s
+    angle = 2 * jnp.pi * (cycles - jnp.floor(cycles))
+    return jnp.cos(angle), jnp.sin(angle)
+
+
+def tone_jets(first, weights, rates, derivatives: int):
+    """The tone t[m] = Σ_{n≥1} 2 w_n cos(2π n f_m τ) and its first `derivatives` derivatives
+    in an unknown along which order n's angle turns at n·`rates`[m] (rad per unit), each (N,),
+    from the first order's phasor `first` (`first_order_phasor`).
+
+    Order n's phasor is the first order's to the n-th power: one float64 cos and sin a frame,
+    not one a frame and order (XLA's CPU float64 cos was most of a fit's time). A phasor
+    turning at rate φ has derivatives iφ·z and −φ²·z, so the tone's come in closed form
+    (`phasor_jet`)."""
+    power = first
+    out = (0.0,) * (derivatives + 1)
+    for order in range(1, weights.shape[0]):
+        if order > 1:
+            power = cmul(power, first)
+        re, _ = phasor_jet(power, order * rates, derivatives)
+        out = jet_add(out, jet_scale(2 * weights[order], re))
+    return out
 
 
 def refine_time_domain(
@@ -41,34 +71,44 @@ def refine_time_domain(
     max_steps: int,
 ) -> FitResult:
     """ML depth of one pixel over all frames: r[m] = c + A·Σ_{n≥1} 2 w_n cos(2π n f_m τ), with
-    (c, A) projected out, a basin grid, then `polish_depth` on the depth offset (mm)."""
+    (c, A) projected out, a basin grid, then Newton's polish on the depth offset (mm).
+
+    Every cost, slope and curvature comes from the Gram matrix of the constant column, the
+    data and the tone's jets (`tone_jets`, `window_model.projected_cost_slope_and_curvature`)."""
     f = frequencies_hz.astype(jnp.float64)
     y = r.astype(jnp.float64)
     scale = jnp.maximum(jnp.std(y), 1e-30)
     y = y / scale
+    ones = jnp.ones_like(f)
+    rate_per_mm = 1e-3 * 4 * jnp.pi * f / C  # the first order's angle per mm of depth
 
-    def design(depth_m):
-        tau = system_delay_s + 2 * depth_m / C
-        tone = jnp.zeros_like(f)
-        for order in range(1, weights.shape[0]):
-            cyc = order * f * tau
-            tone = tone + 2 * weights[order] * jnp.cos(2 * jnp.pi * (cyc - jnp.floor(cyc)))
-        return jnp.stack([jnp.ones_like(f), tone], axis=1)
+    def jets(offset_mm, derivatives):
+        delay = system_delay_s + 2 * (coarse_depth_m + 1e-3 * offset_mm) / C
+        return tone_jets(first_order_phasor(f, delay), weights, rate_per_mm, derivatives)
 
-    def residual(offset_mm, _=None):
-        return _project(design(coarse_depth_m + 1e-3 * offset_mm), y)[1]
+    def gram(columns):
+        return gram_matrix([(ones, None), (y, None)] + [(c, None) for c in columns])
 
     grid_mm = jnp.linspace(-1e3 * grid_half_width_m, 1e3 * grid_half_width_m, grid_points)
-    costs = jax.vmap(lambda g: jnp.sum(residual(g) ** 2))(grid_mm)
-    polish = polish_depth(lambda x: jnp.sum(residual(x) ** 2), grid_mm[jnp.argmin(costs)], max_steps=max_steps)
+    costs = jax.vmap(lambda g: projected_cost(gram(jets(g, 0))))(grid_mm)
+    polish = newton_polish(
+        lambda x: projected_cost_slope_and_curvature(gram(jets(x, 2))), grid_mm[jnp.argmin(costs)], max_steps=max_steps
+    )
     depth = coarse_depth_m + 1e-3 * polish.value
-    final = design(depth)
-    coef, res = _project(final, y)
+    tone, slope_per_mm = jets(polish.value, 1)
+    g = gram([tone])
+    coef = solve_normal_2x2(
+        g[GRAM_DC, GRAM_DC],
+        g[GRAM_DC, GRAM_TONE],
+        g[GRAM_TONE, GRAM_TONE],
+        g[GRAM_DC, GRAM_DATA],
+        g[GRAM_TONE, GRAM_DATA],
+    )
+    res = y - coef[0] - coef[1] * tone
     converged = polish.succeeded & descended(jnp.sum(res**2), jnp.min(costs))
     amp = coef[1] * scale
-    d_tone = jax.jvp(lambda d: design(d)[:, 1], (depth,), (jnp.ones_like(depth),))[1]
     # Fisher information of (depth, c, A) per unit noise variance, with the data unscaled
-    tone, slope = final[:, 1], amp * d_tone
+    slope = amp * 1e3 * slope_per_mm  # ∂(A·t)/∂depth (per m)
     f_dd = slope @ slope
     information = depth_information(f_dd, slope @ tone, tone @ tone, jnp.sum(slope), float(f.shape[0]), jnp.sum(tone))
     sigma = sigma_from_information(information / jnp.maximum(noise_var, 1e-30))

@@ -31,8 +31,8 @@ from .window_model import (
     WindowTables,
     bin_weights,
     jet_scale,
+    projected_cost_slope_and_curvature,
     shift_phasors,
-    solve_normal_2x2,
     window_tables,
 )
 
@@ -78,30 +78,13 @@ class PixelFit(eqx.Module):
         """The projected cost's first and second derivatives in the depth offset (mm), as a
         function of the offset, for the polish's Newton steps.
 
-        The tone's own derivatives come in closed form (`weighted_tone_jets`). Along the
-        tone's second-order expansion t(s) = t + s·t′ + s²/2·t″ the cost has the cost's first
-        two derivatives at s = 0, and every product it needs (of the DC column, the data and
-        t(s)) is a polynomial in s over the Gram matrix of (dc, y, t, t′, t″): one batched
-        product of the window, then scalar arithmetic. Differentiating the residuals
-        instead made a chain of small reductions that XLA compiles as ~60 separate kernels."""
+        The tone's own derivatives come in closed form (`weighted_tone_jets`), the cost's from
+        the Gram matrix of (dc, y, t, t′, t″) (`projected_cost_slope_and_curvature`): one
+        batched product of the window, then scalar arithmetic."""
 
         def at(offset_mm):
             (re, d_re, dd_re), (im, d_im, dd_im) = self.weighted_tone_jets(model, offset_mm, 2)
-            g = self.data.gram([(re, im), (d_re, d_im), (dd_re, dd_im)])
-
-            dc, y, t, d1, d2 = WindowData.GRAM_DC, WindowData.GRAM_DATA, WindowData.GRAM_TONE, 3, 4
-
-            def along(s):
-                dc_t = g[dc, t] + s * (g[dc, d1] + 0.5 * s * g[dc, d2])
-                y_t = g[y, t] + s * (g[y, d1] + 0.5 * s * g[y, d2])
-                t_t = g[t, t] + s * (2 * g[t, d1] + s * (g[d1, d1] + g[t, d2] + s * (g[d1, d2] + 0.25 * s * g[d2, d2])))
-                c, a = solve_normal_2x2(g[dc, dc], dc_t, t_t, g[dc, y], y_t)
-                # |y − c·dc − a·t(s)|²
-                return g[y, y] - 2 * (c * g[dc, y] + a * y_t) + c * c * g[dc, dc] + 2 * c * a * dc_t + a * a * t_t
-
-            slope = lambda s: jax.jvp(along, (s,), (jnp.ones_like(s),))[1]
-            origin = jnp.zeros_like(offset_mm)
-            return jax.jvp(slope, (origin,), (jnp.ones_like(origin),))
+            return projected_cost_slope_and_curvature(self.data.gram([(re, im), (d_re, d_im), (dd_re, dd_im)]))
 
         return at
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Complex, Float, Int
@@ -244,6 +245,50 @@ def solve_normal_2x2(g00, g01, g11, r0, r1):
     return jnp.stack([(g11 * r0 - g01 * r1) / det, (g00 * r1 - g01 * r0) / det])
 
 
+def gram_matrix(vectors) -> Float[Array, "K K"]:
+    """Gram matrix of `vectors`, each a (Re, Im) pair of equal-length arrays (Im None for a
+    real one): every inner product a fit needs, each computed once (the upper triangle)."""
+    dot = lambda u, v: u[0] @ v[0] + (u[1] @ v[1] if u[1] is not None and v[1] is not None else 0.0)
+    upper = {(i, j): dot(vectors[i], vectors[j]) for i in range(len(vectors)) for j in range(i, len(vectors))}
+    return jnp.stack(
+        [jnp.stack([upper[min(i, j), max(i, j)] for j in range(len(vectors))]) for i in range(len(vectors))]
+    )
+
+
+# rows of the Gram matrices the fits build: the DC column, the data, the tone, then the tone's
+# first and second derivatives in the unknown
+GRAM_DC, GRAM_DATA, GRAM_TONE, GRAM_SLOPE, GRAM_CURVATURE = 0, 1, 2, 3, 4
+
+
+def projected_cost(g):
+    """|y − c·dc − A·t|² at the least-squares (c, A), from the Gram matrix of (dc, y, t)."""
+    dc, y, t = GRAM_DC, GRAM_DATA, GRAM_TONE
+    c, a = solve_normal_2x2(g[dc, dc], g[dc, t], g[t, t], g[dc, y], g[t, y])
+    return g[y, y] - 2 * (c * g[dc, y] + a * g[t, y]) + c * c * g[dc, dc] + 2 * c * a * g[dc, t] + a * a * g[t, t]
+
+
+def projected_cost_slope_and_curvature(g):
+    """The projected cost's first and second derivatives in the tone's unknown, from the Gram
+    matrix of (dc, y, t, t′, t″) (`GRAM_*` rows). Along the tone's second-order expansion
+    t(s) = t + s·t′ + s²/2·t″ the cost has the cost's first two derivatives at s = 0, and each
+    product it needs is a polynomial in s over the Gram matrix: scalar arithmetic, where
+    differentiating the residuals made a chain of small reductions that XLA compiles as
+    dozens of separate kernels."""
+    dc, y, t, d1, d2 = GRAM_DC, GRAM_DATA, GRAM_TONE, GRAM_SLOPE, GRAM_CURVATURE
+
+    def along(s):
+        dc_t = g[dc, t] + s * (g[dc, d1] + 0.5 * s * g[dc, d2])
+        y_t = g[y, t] + s * (g[y, d1] + 0.5 * s * g[y, d2])
+        t_t = g[t, t] + s * (2 * g[t, d1] + s * (g[d1, d1] + g[t, d2] + s * (g[d1, d2] + 0.25 * s * g[d2, d2])))
+        c, a = solve_normal_2x2(g[dc, dc], dc_t, t_t, g[dc, y], y_t)
+        # |y − c·dc − a·t(s)|²
+        return g[y, y] - 2 * (c * g[dc, y] + a * y_t) + c * c * g[dc, dc] + 2 * c * a * dc_t + a * a * t_t
+
+    slope = lambda s: jax.jvp(along, (s,), (jnp.ones_like(s),))[1]
+    origin = jnp.zeros_like(g[dc, dc])
+    return jax.jvp(slope, (origin,), (jnp.ones_like(origin),))
+
+
 class WindowData(eqx.Module):
     """One pixel's window weighted by the bin weights ω: data y (Re, Im parts) and the DC
     column (real); all (W,). The tone column enters as (Re, Im) parts weighted alike."""
@@ -253,17 +298,12 @@ class WindowData(eqx.Module):
     dc: Float[Array, " W"]
 
     # rows of `gram`: the DC column, the data, then the columns passed
-    GRAM_DC, GRAM_DATA, GRAM_TONE = 0, 1, 2
+    GRAM_DC, GRAM_DATA, GRAM_TONE = GRAM_DC, GRAM_DATA, GRAM_TONE
 
     def gram(self, columns) -> Float[Array, "K K"]:
-        """Gram matrix of (dc, y, *columns), each column a weighted complex column as (Re, Im):
-        every inner product a fit needs, each product computed once (the upper triangle)."""
-        vectors = [(self.dc, None), (self.y_re, self.y_im)] + list(columns)
-        dot = lambda u, v: u[0] @ v[0] + (u[1] @ v[1] if u[1] is not None and v[1] is not None else 0.0)
-        upper = {(i, j): dot(vectors[i], vectors[j]) for i in range(len(vectors)) for j in range(i, len(vectors))}
-        return jnp.stack(
-            [jnp.stack([upper[min(i, j), max(i, j)] for j in range(len(vectors))]) for i in range(len(vectors))]
-        )
+        """Gram matrix of (dc, y, *columns), each column a weighted complex column as (Re, Im)
+        (`gram_matrix`)."""
+        return gram_matrix([(self.dc, None), (self.y_re, self.y_im)] + list(columns))
 
     def coefficients(self, gram):
         """Least-squares (c, A) on [dc, the first column of `gram`]."""
