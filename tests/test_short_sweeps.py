@@ -69,6 +69,11 @@ def test_tone_table_holds_the_tone_and_its_derivatives(comb):
     np.testing.assert_allclose(
         np.sum(taylor**2, -1), np.polynomial.polynomial.polyval(u, np.asarray(table.norm_coeffs)[g].T), rtol=1e-9
     )
+    # and |∂/∂u Σ u^j/j!·R_j|² (the final fit's Fisher information) against its own
+    slope = sum(u ** (j - 1) / math.factorial(j - 1) * centred[:, j] for j in range(1, centred.shape[1]))
+    np.testing.assert_allclose(
+        np.sum(slope**2, -1), np.polynomial.polynomial.polyval(u, np.asarray(table.slope_norm_coeffs)[g].T), rtol=1e-9
+    )
     # the Taylor sum half a spacing off a grid point is the tone there to the stated tolerance
     np.testing.assert_allclose(
         taylor

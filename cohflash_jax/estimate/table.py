@@ -75,12 +75,16 @@ class ToneTable(eqx.Module):
     search's matrix); `rows` (G, K+1, N) float32: mean-removed R_j; `means` (G, K+1): the
     R_j's means over frames; `norm_coeffs` (G, 2K+1): coefficients of |Σ_j u^j/j!·R_j|² in u
     (mean-removed, from the float32 rows). `start_m` moves with τ_sys: a field, which the
-    reconstruction's programs take as an array (`reconstruct.plan.program_plan`)."""
+    reconstruction's programs take as an array (`reconstruct.plan.program_plan`);
+    `slope_norm_coeffs` (G, 2K−1): coefficients of |Σ_{j≥1} u^{j−1}/(j−1)!·R_j|², the squared
+    norm of the tone's derivative in u, so the final fit's Fisher information needs no pass
+    over the frames."""
 
     unit_tones: Float[Array, "N G"]
     rows: Float[Array, "G K1 N"]
     means: Float[Array, "G K1"]
     norm_coeffs: Float[Array, "G K2"]
+    slope_norm_coeffs: Float[Array, "G K3"]
     start_m: float
     spacing_m: float = eqx.field(static=True)
 
@@ -115,9 +119,12 @@ def build_tone_table(
     inv_fact = inverse_factorials(order + 1)
     gram = np.einsum("gim,gjm->gij", exact, exact) * inv_fact[None, :, None] * inv_fact[None, None, :]
     coeffs = np.zeros((depths.size, 2 * order + 1))
+    slope_coeffs = np.zeros((depths.size, 2 * order - 1))
     for i in range(order + 1):
         for j in range(order + 1):
             coeffs[:, i + j] += gram[:, i, j]
+            if i and j:  # d/du of u^i/i! is u^(i−1)/(i−1)!: the same Gram entry, scaled by i·j
+                slope_coeffs[:, i + j - 2] += i * j * gram[:, i, j]
     norm0 = np.sqrt(np.maximum(coeffs[:, 0], 1e-300))
     unit = (exact[:, 0] / norm0[:, None]).T.astype(np.float32)
     return ToneTable(
@@ -125,6 +132,7 @@ def build_tone_table(
         jnp.asarray(centred),
         jnp.asarray(means),
         jnp.asarray(coeffs),
+        jnp.asarray(slope_coeffs),
         float(depth_range_m[0]),
         float(spacing_m),
     )
@@ -213,19 +221,22 @@ def refine_ml_table(
     # a data-free pixel (dead, or zeroed NaN frames) has a flat cost and a NaN Newton step
     within = jnp.isfinite(u) & (jnp.abs(u) <= MAX_POLISH_SPACINGS)
     u = jnp.where(jnp.isfinite(u), jnp.clip(u, -MAX_POLISH_SPACINGS, MAX_POLISH_SPACINGS), 0.0)
-    # 3. the final fit over every frame
-    tone, tone_u = _taylor(rows_t, u[:, None])  # (P, N) each, mean-removed
+    # 3. the final fit over every frame, from the same polynomials: y·t(u) = b(u), |t(u)|² =
+    # n(u), t(u)·t′(u) = n′(u)/2 and |t′(u)|² from the table's slope polynomial (mean-removed
+    # throughout; the means' Taylor sums give the DC parts)
+    tone_y = _poly(b_coeffs, u)
+    tone_norm = _poly(norm_coeffs, u)
+    tone_sq = tone_norm + ridge
+    amp = tone_y / tone_sq
+    cost = jnp.maximum(data_sq - 2 * amp * tone_y + amp * amp * tone_norm, 0.0)
     means = jnp.take(table.means, best, axis=0)  # (P, K+1)
     mean_tone, mean_tone_u = _taylor(means.T, u)
-    tone_sq = jnp.sum(tone * tone, axis=-1) + ridge
-    amp = jnp.sum(tone * y.T, axis=-1) / tone_sq
-    residual = y.T - amp[:, None] * tone
-    cost = jnp.sum(residual * residual, axis=-1)
     offset = mean_r - amp * mean_tone
     # Fisher information of (depth, c, A), per unit noise variance: c is eliminated exactly by
     # the mean-removed columns, A by the Schur complement; ∂t/∂d = (∂t/∂u)/s
-    du_sq = jnp.sum(tone_u * tone_u, axis=-1)
-    f_da = amp * jnp.sum(tone_u * tone, axis=-1) / s
+    du_sq = _poly(jnp.take(table.slope_norm_coeffs, best, axis=0), u)
+    tone_du = 0.5 * _poly(norm_coeffs[:, 1:] * jnp.arange(1, norm_coeffs.shape[1]), u)
+    f_da = amp * tone_du / s
     schur_unit = depth_information(amp**2 * du_sq / s**2, f_da, tone_sq)
     sigma = sigma_from_information(schur_unit / jnp.maximum(noise_var, 1e-30))
     f_dd = amp**2 * (du_sq + n * mean_tone_u**2) / s**2
