@@ -445,7 +445,8 @@ def test_straggler_pass_gives_each_pixel_its_uninterrupted_polish():
     it — same steps, same convergence, same depth — whatever its batch: 96 low-SNR pixels
     (up to three straggler groups, and empty slots), synthetic windows of the phase-locked model."""
 
-    from cohflash_jax.estimate.window_ml import STRAGGLER_GROUP, grid_for, refine_ml_uniform
+    from cohflash_jax.estimate.polish import STRAGGLER_GROUP
+    from cohflash_jax.estimate.window_ml import grid_for, refine_ml_uniform
     from cohflash_jax.estimate.window_model import UniformModel, window_tables
     from cohflash_jax.modulator import MZM
 

@@ -6,6 +6,7 @@ import dataclasses
 
 import h5py
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -174,3 +175,54 @@ def test_time_domain_fit_equals_a_brute_force_least_squares_fit(schedule):
         assert float(out.amplitude[k]) == pytest.approx(coef[1], rel=1e-7)
         assert float(out.cost[k]) == pytest.approx(cost, rel=1e-9)
         assert abs(ref - truth) < 6 * sigma
+
+
+def test_time_domain_fits_in_two_passes_end_as_one_uninterrupted_polish():
+    """`TimeDomainML.fit_each` polishes its batch in two passes (`polish_in_passes`): each fit
+    must end exactly as `refine_time_domain`'s uninterrupted polish ends it — same steps, same
+    convergence, same depth. Low-SNR pixels of a 40-step random schedule from six starts
+    each, so that stragglers fill more than one group."""
+    from cohflash_jax.estimate.polish import FIRST_PASS_STEPS, STRAGGLER_GROUP
+    from cohflash_jax.estimate.time_domain import TimeDomainML, refine_time_domain
+
+    rng = np.random.default_rng(11)
+    f = np.sort(rng.uniform(1e9, 7e9, 40))
+    weights = np.array([0.1, 0.5, 0.2, 0.3])
+    pixels, starts_per_pixel, half_width_m, points = 48, 6, 0.02, 33
+    truth = rng.uniform(10.0, 20.0, pixels)
+    tau = 2 * truth / C
+    tone = sum(2 * weights[n] * np.cos(2 * np.pi * n * f[:, None] * tau[None]) for n in range(1, weights.size))
+    frames = 5.0 + rng.uniform(0.5, 3.0, pixels) * tone + rng.standard_normal(tone.shape)
+    starts = truth[None] + rng.uniform(-3, 3, (starts_per_pixel, pixels)) * half_width_m
+    noise_var = np.ones(pixels)
+    est = TimeDomainML(jnp.asarray(f), jnp.asarray(weights), 0.0, half_width_m, points, 16, starts_per_pixel)
+    fit_each = jax.jit(lambda e, r, s, v: e.fit_each(r, s, v))
+    batch = fit_each(est, jnp.asarray(frames), jnp.asarray(starts), jnp.asarray(noise_var))
+    one = jax.jit(
+        jax.vmap(
+            jax.vmap(
+                lambda r, d, v: refine_time_domain(
+                    r,
+                    jnp.asarray(f),
+                    jnp.asarray(weights),
+                    d,
+                    v,
+                    system_delay_s=0.0,
+                    grid_half_width_m=half_width_m,
+                    grid_points=points,
+                    max_steps=16,
+                )
+            ),
+            in_axes=(None, 0, None),
+        )
+    )(jnp.asarray(frames.T), jnp.asarray(starts), jnp.asarray(noise_var))
+    steps = np.asarray(one.num_steps)
+    assert (steps > FIRST_PASS_STEPS).sum() > STRAGGLER_GROUP  # stragglers in two groups at least
+    np.testing.assert_array_equal(np.asarray(batch.num_steps), steps)
+    np.testing.assert_array_equal(np.asarray(batch.converged), np.asarray(one.converged))
+    np.testing.assert_allclose(np.asarray(batch.depth_m), np.asarray(one.depth_m), rtol=0, atol=1e-12)
+    posed = np.asarray(one.well_posed) & np.asarray(one.converged)
+    np.testing.assert_array_equal(np.asarray(batch.well_posed), np.asarray(one.well_posed))
+    assert posed.mean() > 0.5
+    sigma = lambda fit: np.asarray(fit.sigma_depth_m)[posed]
+    np.testing.assert_allclose(sigma(batch), sigma(one), rtol=1e-9)

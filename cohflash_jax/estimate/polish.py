@@ -82,6 +82,50 @@ def newton_polish(slope_and_curvature, start_mm, *, max_steps: int, tolerance_mm
     return Polish(value, ok & stop, steps, ok & ~stop)
 
 
+# `polish_in_passes`: every fit runs at most `first_pass_steps` Newton steps, then those still
+# going resume this many at a time: a vmapped loop runs as long as its slowest fit. Measured on
+# the 35-frame 10 Hz mode (81 920 px): 98.8 % of the pixels converge in 2–3 steps and 57 need
+# 4–9, one of those in most 2048-px batches.
+FIRST_PASS_STEPS = 3
+STRAGGLER_GROUP = 32
+
+
+def polish_in_passes(polish_one, starts, *, max_steps: int, first_pass_steps: int = FIRST_PASS_STEPS):
+    """Newton polishes of a batch of fits in two passes → (values, succeeded, num_steps), each
+    like `starts` (F,). `polish_one(index, start, steps)` polishes fit `index` from `start`
+    for at most `steps` steps → (value, succeeded, num_steps, at_step_limit) (`Polish`).
+
+    Every fit runs `first_pass_steps`; those that hit that limit resume where they stopped,
+    `STRAGGLER_GROUP` at a time, for the remaining steps. A fit's result depends on its own
+    data only, never on its batch. The straggler pass is a `lax.while_loop`, which
+    reverse-mode differentiation cannot pass through."""
+    total = starts.shape[0]
+    first = min(first_pass_steps, max_steps)
+    values, solved, num_steps, at_limit = jax.vmap(lambda i, x: polish_one(i, x, first))(jnp.arange(total), starts)
+    if max_steps <= first:
+        return values, solved, num_steps
+    group = min(STRAGGLER_GROUP, total)
+
+    def resume(state):
+        values, solved, num_steps, pending = state
+        # `total` marks an empty slot: its polish runs on a clamped index, its writes are dropped
+        slots = jnp.nonzero(pending, size=group, fill_value=total)[0]
+        idx = jnp.minimum(slots, total - 1)
+        v, ok, steps, _ = jax.vmap(lambda i, x: polish_one(i, x, max_steps - first))(idx, values[idx])
+        put = lambda arr, new: arr.at[slots].set(new, mode="drop")
+        return (
+            put(values, v),
+            put(solved, ok),
+            put(num_steps, num_steps[idx] + steps),
+            pending.at[slots].set(False, mode="drop"),
+        )
+
+    values, solved, num_steps, _ = jax.lax.while_loop(
+        lambda state: jnp.any(state[3]), resume, (values, solved, num_steps, at_limit)
+    )
+    return values, solved, num_steps
+
+
 def descended(final_cost, ceiling):
     """False where a polish climbed: its final cost exceeds `ceiling`, the cost at a point of
     the start's basin (e.g. its grid point)."""

@@ -15,7 +15,7 @@ from jaxtyping import Array, Float
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import depth_information, sigma_from_information, well_posed
 from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult, best_of, reduced_chi2
-from .polish import descended, newton_polish
+from .polish import Polish, descended, newton_polish, polish_in_passes
 from .window_ml import grid_for
 from .window_model import (
     GRAM_DATA,
@@ -58,6 +58,76 @@ def tone_jets(first, weights, rates, derivatives: int):
     return out
 
 
+class TimeDomainPixel(eqx.Module):
+    """One pixel's sequence for the time-domain fit, scaled to unit standard deviation, and
+    the scale."""
+
+    y: Float[Array, " N"]
+    scale: Float[Array, ""]
+
+    @classmethod
+    def of(cls, r: Float[Array, " N"]) -> TimeDomainPixel:
+        y = r.astype(jnp.float64)
+        scale = jnp.maximum(jnp.std(y), 1e-30)
+        return cls(y / scale, scale)
+
+    def gram(self, columns) -> Float[Array, "K K"]:
+        """Gram matrix of (the constant column, the data, *columns) (`window_model.GRAM_*` rows)."""
+        return gram_matrix([(jnp.ones_like(self.y), None), (self.y, None)] + [(c, None) for c in columns])
+
+
+class TimeDomainModel(eqx.Module):
+    """The phase-locked tone over a schedule: its frequencies, sideband weights and τ_sys."""
+
+    frequencies_hz: Float[Array, " N"]
+    weights: Float[Array, " K"]
+    system_delay_s: float
+
+    def jets(self, depth_m, offset_mm, derivatives: int):
+        """The tone at `depth_m` + `offset_mm` and its derivatives per mm (`tone_jets`)."""
+        f = self.frequencies_hz.astype(jnp.float64)
+        delay = self.system_delay_s + 2 * (depth_m + 1e-3 * offset_mm) / C
+        return tone_jets(first_order_phasor(f, delay), self.weights, 1e-3 * 4 * jnp.pi * f / C, derivatives)
+
+    def grid_start(self, pixel: TimeDomainPixel, depth_m, grid_half_width_m: float, grid_points: int):
+        """The basin grid's best offset (mm) from `depth_m` and its projected cost (the
+        polish's ceiling, `descended`)."""
+        grid_mm = jnp.linspace(-1e3 * grid_half_width_m, 1e3 * grid_half_width_m, grid_points)
+        costs = jax.vmap(lambda g: projected_cost(pixel.gram(self.jets(depth_m, g, 0))))(grid_mm)
+        return grid_mm[jnp.argmin(costs)], jnp.min(costs)
+
+    def polish(self, pixel: TimeDomainPixel, depth_m, start_mm, max_steps: int) -> Polish:
+        """Newton's polish of the offset (mm) from `depth_m`, slope and curvature from the Gram
+        matrix of the tone's jets (`window_model.projected_cost_slope_and_curvature`)."""
+        at = lambda x: projected_cost_slope_and_curvature(pixel.gram(self.jets(depth_m, x, 2)))
+        return newton_polish(at, start_mm, max_steps=max_steps)
+
+    def finish(self, pixel: TimeDomainPixel, depth_m, offset_mm, solved, num_steps, ceiling, noise_var) -> FitResult:
+        """The fit at the polished depth, σ from the Fisher information there."""
+        tone, slope_per_mm = self.jets(depth_m, offset_mm, 1)
+        g = pixel.gram([tone])
+        coef = solve_normal_2x2(
+            g[GRAM_DC, GRAM_DC],
+            g[GRAM_DC, GRAM_TONE],
+            g[GRAM_TONE, GRAM_TONE],
+            g[GRAM_DC, GRAM_DATA],
+            g[GRAM_TONE, GRAM_DATA],
+        )
+        y, scale = pixel.y, pixel.scale
+        res = y - coef[0] - coef[1] * tone
+        converged = solved & descended(jnp.sum(res**2), ceiling)
+        amp = coef[1] * scale
+        # Fisher information of (depth, c, A) per unit noise variance, with the data unscaled
+        slope = amp * 1e3 * slope_per_mm  # ∂(A·t)/∂depth (per m)
+        f_dd = slope @ slope
+        n = float(y.shape[0])
+        information = depth_information(f_dd, slope @ tone, tone @ tone, jnp.sum(slope), n, jnp.sum(tone))
+        sigma = sigma_from_information(information / jnp.maximum(noise_var, 1e-30))
+        posed = well_posed(coef[1], tone @ tone, y @ y, f_dd, information)
+        cost = jnp.sum(res**2) * scale**2
+        return FitResult(depth_m + 1e-3 * offset_mm, coef[0] * scale, amp, sigma, converged, num_steps, cost, posed)
+
+
 def refine_time_domain(
     r: Float[Array, " N"],
     frequencies_hz: Float[Array, " N"],
@@ -71,49 +141,15 @@ def refine_time_domain(
     max_steps: int,
 ) -> FitResult:
     """ML depth of one pixel over all frames: r[m] = c + A·Σ_{n≥1} 2 w_n cos(2π n f_m τ), with
-    (c, A) projected out, a basin grid, then Newton's polish on the depth offset (mm).
-
-    Every cost, slope and curvature comes from the Gram matrix of the constant column, the
-    data and the tone's jets (`tone_jets`, `window_model.projected_cost_slope_and_curvature`)."""
-    f = frequencies_hz.astype(jnp.float64)
-    y = r.astype(jnp.float64)
-    scale = jnp.maximum(jnp.std(y), 1e-30)
-    y = y / scale
-    ones = jnp.ones_like(f)
-    rate_per_mm = 1e-3 * 4 * jnp.pi * f / C  # the first order's angle per mm of depth
-
-    def jets(offset_mm, derivatives):
-        delay = system_delay_s + 2 * (coarse_depth_m + 1e-3 * offset_mm) / C
-        return tone_jets(first_order_phasor(f, delay), weights, rate_per_mm, derivatives)
-
-    def gram(columns):
-        return gram_matrix([(ones, None), (y, None)] + [(c, None) for c in columns])
-
-    grid_mm = jnp.linspace(-1e3 * grid_half_width_m, 1e3 * grid_half_width_m, grid_points)
-    costs = jax.vmap(lambda g: projected_cost(gram(jets(g, 0))))(grid_mm)
-    polish = newton_polish(
-        lambda x: projected_cost_slope_and_curvature(gram(jets(x, 2))), grid_mm[jnp.argmin(costs)], max_steps=max_steps
-    )
-    depth = coarse_depth_m + 1e-3 * polish.value
-    tone, slope_per_mm = jets(polish.value, 1)
-    g = gram([tone])
-    coef = solve_normal_2x2(
-        g[GRAM_DC, GRAM_DC],
-        g[GRAM_DC, GRAM_TONE],
-        g[GRAM_TONE, GRAM_TONE],
-        g[GRAM_DC, GRAM_DATA],
-        g[GRAM_TONE, GRAM_DATA],
-    )
-    res = y - coef[0] - coef[1] * tone
-    converged = polish.succeeded & descended(jnp.sum(res**2), jnp.min(costs))
-    amp = coef[1] * scale
-    # Fisher information of (depth, c, A) per unit noise variance, with the data unscaled
-    slope = amp * 1e3 * slope_per_mm  # ∂(A·t)/∂depth (per m)
-    f_dd = slope @ slope
-    information = depth_information(f_dd, slope @ tone, tone @ tone, jnp.sum(slope), float(f.shape[0]), jnp.sum(tone))
-    sigma = sigma_from_information(information / jnp.maximum(noise_var, 1e-30))
-    posed = well_posed(coef[1], tone @ tone, y @ y, f_dd, information)
-    return FitResult(depth, coef[0] * scale, amp, sigma, converged, polish.num_steps, jnp.sum(res**2) * scale**2, posed)
+    (c, A) projected out, a basin grid, then Newton's polish on the depth offset (mm) in one
+    pass (`TimeDomainML.fit_each` polishes a batch in two, `polish_in_passes`, to the same
+    result). Every cost, slope and curvature comes from the Gram matrix of the constant
+    column, the data and the tone's jets (`tone_jets`)."""
+    model = TimeDomainModel(frequencies_hz, weights, system_delay_s)
+    pixel = TimeDomainPixel.of(r)
+    start, ceiling = model.grid_start(pixel, coarse_depth_m, grid_half_width_m, grid_points)
+    p = model.polish(pixel, coarse_depth_m, start, max_steps)
+    return model.finish(pixel, coarse_depth_m, p.value, p.succeeded, p.num_steps, ceiling, noise_var)
 
 
 # Depths the fit starts from: the periodogram's peak and its strongest rivals. Few frames over a
@@ -173,21 +209,26 @@ class TimeDomainML(AbstractDepthEstimator):
         return self.best_fit(self.fit_each(sequence, starts, noise_var), starts, sequence, noise_var, stage.grid_step_m)
 
     def fit_each(self, sequence: Float[Array, "N P"], starts: Float[Array, "K P"], noise_var) -> FitResult:
-        """`refine_time_domain` of every pixel from each of its K starting depths → fields (K, P)."""
-        fit_from = lambda start: jax.vmap(
-            lambda r, d, v: refine_time_domain(
-                r,
-                self.frequencies_hz,
-                self.weights,
-                d,
-                v,
-                system_delay_s=self.system_delay_s,
-                grid_half_width_m=self.grid_half_width_m,
-                grid_points=self.grid_points,
-                max_steps=self.max_steps,
-            )
-        )(sequence.T, start, noise_var)
-        return jax.vmap(fit_from)(starts)
+        """The time-domain fit of every pixel from each of its K starting depths → fields (K, P):
+        `refine_time_domain`'s stages, the polish in two passes (`polish_in_passes`)."""
+        k, p = starts.shape
+        model = TimeDomainModel(self.frequencies_hz, self.weights, self.system_delay_s)
+        pixels = jax.vmap(TimeDomainPixel.of)(sequence.T)
+        # one fit per (start, pixel), flattened: fit i is pixel i mod P's
+        fits = jax.tree.map(
+            lambda leaf: jnp.broadcast_to(leaf, (k, *leaf.shape)).reshape(k * p, *leaf.shape[1:]), pixels
+        )
+        depths, variances = starts.reshape(-1), jnp.tile(noise_var, k)
+        grid = lambda pix, d: model.grid_start(pix, d, self.grid_half_width_m, self.grid_points)
+        offsets, ceilings = jax.vmap(grid)(fits, depths)
+
+        def polish_one(index, start, steps):
+            q = model.polish(jax.tree.map(lambda leaf: leaf[index], fits), depths[index], start, steps)
+            return q.value, q.succeeded, q.num_steps, q.at_step_limit
+
+        values, solved, num_steps = polish_in_passes(polish_one, offsets, max_steps=self.max_steps)
+        out = jax.vmap(model.finish)(fits, depths, values, solved, num_steps, ceilings, variances)
+        return jax.tree.map(lambda leaf: leaf.reshape(k, p), out)
 
     @staticmethod
     def best_fit(fits: FitResult, starts, sequence, noise_var, min_separation_m) -> DepthEstimate:

@@ -23,7 +23,14 @@ from jaxtyping import Array, Bool, Complex, Float, Int
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import depth_information, phase_locked_sigma_m, sigma_from_information, well_posed
 from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult, reduced_chi2
-from .polish import STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA, descended, newton_polish
+from .polish import (
+    FIRST_PASS_STEPS,
+    STEP_TOLERANCE_FLOOR_MM,
+    STEP_TOLERANCE_SIGMA,
+    descended,
+    newton_polish,
+    polish_in_passes,
+)
 from .window_model import (
     Phasors,
     UniformModel,
@@ -219,14 +226,6 @@ def finish_pixel(
     )
 
 
-# The polish runs every pixel of a batch for at most this many Newton steps, then only the
-# pixels still going, a few at a time (`STRAGGLER_GROUP`): a vmapped loop runs as long as its
-# slowest pixel. Measured on the 35-frame 10 Hz mode (81 920 px): 98.8 % of the pixels
-# converge in 2–3 steps and 57 need 4–9, one of those in most 2048-px batches.
-FIRST_PASS_STEPS = 3
-STRAGGLER_GROUP = 32
-
-
 def refine_ml_uniform(
     model: UniformModel,
     windows,
@@ -244,11 +243,8 @@ def refine_ml_uniform(
     """ML depth of a batch of pixels (the leading axis of every array argument) from their DFT
     windows (unitary bins k0..k0+W−1): `prepare_pixel`, the polish, `finish_pixel`.
 
-    The polish (`newton_polish`, up to `max_steps` Newton steps a pixel) runs in two passes:
-    every pixel and candidate for `first_pass_steps` (default `FIRST_PASS_STEPS`), then those
-    that hit that limit resume where they stopped, `STRAGGLER_GROUP` at a time, for the
-    remaining steps. A pixel's result depends on its own data only, never on its batch. The
-    straggler pass is a `lax.while_loop`, which reverse-mode differentiation cannot pass through."""
+    The polish (`newton_polish`, up to `max_steps` Newton steps a pixel and candidate) runs in
+    two passes (`polish_in_passes`, the first of `first_pass_steps`, default `FIRST_PASS_STEPS`)."""
     prep = lambda w, k, d, v: prepare_pixel(
         model,
         w,
@@ -267,33 +263,12 @@ def refine_ml_uniform(
     starts = pix.starts_mm.reshape(-1)
 
     def polish(index, start, steps):
-        one = jax.tree.map(lambda leaf: leaf[index], pix)
+        one = jax.tree.map(lambda leaf: leaf[owner[index]], pix)
         p = newton_polish(one.slope_and_curvature(model), start, max_steps=steps, tolerance_mm=one.tolerance_mm)
         return p.value, p.succeeded, p.num_steps, p.at_step_limit
 
-    first = min(FIRST_PASS_STEPS if first_pass_steps is None else first_pass_steps, max_steps)
-    values, solved, num_steps, at_limit = jax.vmap(lambda i, x: polish(i, x, first))(owner, starts)
-    if max_steps > first:
-        total = starts.shape[0]
-        group = min(STRAGGLER_GROUP, total)
-
-        def resume(state):
-            values, solved, num_steps, pending = state
-            # `total` marks an empty slot: its polish runs on a clamped index, its writes are dropped
-            slots = jnp.nonzero(pending, size=group, fill_value=total)[0]
-            idx = jnp.minimum(slots, total - 1)
-            v, ok, steps, _ = jax.vmap(lambda i, x: polish(i, x, max_steps - first))(owner[idx], values[idx])
-            put = lambda arr, new: arr.at[slots].set(new, mode="drop")
-            return (
-                put(values, v),
-                put(solved, ok),
-                put(num_steps, num_steps[idx] + steps),
-                pending.at[slots].set(False, mode="drop"),
-            )
-
-        values, solved, num_steps, _ = jax.lax.while_loop(
-            lambda state: jnp.any(state[3]), resume, (values, solved, num_steps, at_limit)
-        )
+    first = FIRST_PASS_STEPS if first_pass_steps is None else first_pass_steps
+    values, solved, num_steps = polish_in_passes(polish, starts, max_steps=max_steps, first_pass_steps=first)
     shape = (num_pixels, candidates)
     fin = lambda p, d, v, x, ok, steps: finish_pixel(model, p, d, v, x, ok, steps)
     return jax.vmap(fin)(
