@@ -18,17 +18,14 @@ from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResu
 from .polish import Polish, descended, newton_polish, polish_in_passes
 from .window_ml import grid_for
 from .window_model import (
-    GRAM_DATA,
-    GRAM_DC,
-    GRAM_TONE,
     cmul,
     gram_matrix,
     jet_add,
     jet_scale,
     phasor_jet,
+    projected_coefficients,
     projected_cost,
     projected_cost_slope_and_curvature,
-    solve_normal_2x2,
 )
 
 
@@ -105,14 +102,7 @@ class TimeDomainModel(eqx.Module):
     def finish(self, pixel: TimeDomainPixel, depth_m, offset_mm, solved, num_steps, ceiling, noise_var) -> FitResult:
         """The fit at the polished depth, σ from the Fisher information there."""
         tone, slope_per_mm = self.jets(depth_m, offset_mm, 1)
-        g = pixel.gram([tone])
-        coef = solve_normal_2x2(
-            g[GRAM_DC, GRAM_DC],
-            g[GRAM_DC, GRAM_TONE],
-            g[GRAM_TONE, GRAM_TONE],
-            g[GRAM_DC, GRAM_DATA],
-            g[GRAM_TONE, GRAM_DATA],
-        )
+        coef = projected_coefficients(pixel.gram([tone]))
         y, scale = pixel.y, pixel.scale
         res = y - coef[0] - coef[1] * tone
         converged = solved & descended(jnp.sum(res**2), ceiling)

@@ -32,12 +32,17 @@ from .polish import (
     polish_in_passes,
 )
 from .window_model import (
+    GRAM_DATA,
+    GRAM_DC,
+    GRAM_SLOPE,
+    GRAM_TONE,
     Phasors,
     UniformModel,
     WindowData,
     WindowTables,
     bin_weights,
     jet_scale,
+    projected_coefficients,
     projected_cost_slope_and_curvature,
     shift_phasors,
     window_tables,
@@ -190,7 +195,7 @@ def finish_pixel(
         its derivative in depth: the Jacobian's depth column)."""
         (re, d_re_per_mm), (im, d_im_per_mm) = pix.weighted_tone_jets(model, offset_mm, 1)
         g = data.gram([(re, im), (1e3 * d_re_per_mm, 1e3 * d_im_per_mm)])
-        coef = data.coefficients(g)
+        coef = projected_coefficients(g)
         res_re, res_im = data.y_re - data.dc * coef[0] - re * coef[1], data.y_im - im * coef[1]
         return coef, res_re @ res_re + res_im @ res_im, g
 
@@ -210,7 +215,7 @@ def finish_pixel(
     # Fisher information of (depth, c, A): components of a unitary DFT of white noise of
     # variance σ² carry σ²/2 each (the weights ω already account for DC/Nyquist bins).
     # Jacobian columns (in units of the scaled data): depth A·∂tone/∂depth, offset dc, amplitude tone
-    dc, y, tone, d_tone = WindowData.GRAM_DC, WindowData.GRAM_DATA, WindowData.GRAM_TONE, WindowData.GRAM_TONE + 1
+    dc, y, tone, d_tone = GRAM_DC, GRAM_DATA, GRAM_TONE, GRAM_SLOPE
     amp = coef[1]
     tone_sq = g[tone, tone]
     f_dd = amp**2 * g[d_tone, d_tone]
@@ -238,7 +243,7 @@ def refine_ml_uniform(
     max_steps: int = 16,
     candidates: int = 1,
     grid_max_order: int | None = None,
-    first_pass_steps: int | None = None,
+    first_pass_steps: int = FIRST_PASS_STEPS,
 ) -> FitResult:
     """ML depth of a batch of pixels (the leading axis of every array argument) from their DFT
     windows (unitary bins k0..k0+W−1): `prepare_pixel`, the polish, `finish_pixel`.
@@ -267,8 +272,7 @@ def refine_ml_uniform(
         p = newton_polish(one.slope_and_curvature(model), start, max_steps=steps, tolerance_mm=one.tolerance_mm)
         return p.value, p.succeeded, p.num_steps, p.at_step_limit
 
-    first = FIRST_PASS_STEPS if first_pass_steps is None else first_pass_steps
-    values, solved, num_steps = polish_in_passes(polish, starts, max_steps=max_steps, first_pass_steps=first)
+    values, solved, num_steps = polish_in_passes(polish, starts, max_steps=max_steps, first_pass_steps=first_pass_steps)
     shape = (num_pixels, candidates)
     fin = lambda p, d, v, x, ok, steps: finish_pixel(model, p, d, v, x, ok, steps)
     return jax.vmap(fin)(

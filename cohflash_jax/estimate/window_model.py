@@ -260,11 +260,25 @@ def gram_matrix(vectors) -> Float[Array, "K K"]:
 GRAM_DC, GRAM_DATA, GRAM_TONE, GRAM_SLOPE, GRAM_CURVATURE = 0, 1, 2, 3, 4
 
 
+def projected_coefficients(g):
+    """Least-squares (c, A) on [dc, t], from the Gram matrix of (dc, y, t, …) (`GRAM_*` rows)."""
+    dc, y, t = GRAM_DC, GRAM_DATA, GRAM_TONE
+    return solve_normal_2x2(g[dc, dc], g[dc, t], g[t, t], g[dc, y], g[t, y])
+
+
+def _residual_energy(g, dc_t, y_t, t_t):
+    """|y − c·dc − A·t|² at the least-squares (c, A), from the Gram matrix's dc and data rows
+    and the tone's products dc·t, y·t, t·t (given apart: `projected_cost_slope_and_curvature`
+    moves the tone along its expansion)."""
+    dc, y = GRAM_DC, GRAM_DATA
+    c, a = solve_normal_2x2(g[dc, dc], dc_t, t_t, g[dc, y], y_t)
+    return g[y, y] - 2 * (c * g[dc, y] + a * y_t) + c * c * g[dc, dc] + 2 * c * a * dc_t + a * a * t_t
+
+
 def projected_cost(g):
     """|y − c·dc − A·t|² at the least-squares (c, A), from the Gram matrix of (dc, y, t)."""
     dc, y, t = GRAM_DC, GRAM_DATA, GRAM_TONE
-    c, a = solve_normal_2x2(g[dc, dc], g[dc, t], g[t, t], g[dc, y], g[t, y])
-    return g[y, y] - 2 * (c * g[dc, y] + a * g[t, y]) + c * c * g[dc, dc] + 2 * c * a * g[dc, t] + a * a * g[t, t]
+    return _residual_energy(g, g[dc, t], g[y, t], g[t, t])
 
 
 def projected_cost_slope_and_curvature(g):
@@ -280,9 +294,7 @@ def projected_cost_slope_and_curvature(g):
         dc_t = g[dc, t] + s * (g[dc, d1] + 0.5 * s * g[dc, d2])
         y_t = g[y, t] + s * (g[y, d1] + 0.5 * s * g[y, d2])
         t_t = g[t, t] + s * (2 * g[t, d1] + s * (g[d1, d1] + g[t, d2] + s * (g[d1, d2] + 0.25 * s * g[d2, d2])))
-        c, a = solve_normal_2x2(g[dc, dc], dc_t, t_t, g[dc, y], y_t)
-        # |y − c·dc − a·t(s)|²
-        return g[y, y] - 2 * (c * g[dc, y] + a * y_t) + c * c * g[dc, dc] + 2 * c * a * dc_t + a * a * t_t
+        return _residual_energy(g, dc_t, y_t, t_t)  # |y − c·dc − a·t(s)|²
 
     slope = lambda s: jax.jvp(along, (s,), (jnp.ones_like(s),))[1]
     origin = jnp.zeros_like(g[dc, dc])
@@ -297,18 +309,10 @@ class WindowData(eqx.Module):
     y_im: Float[Array, " W"]
     dc: Float[Array, " W"]
 
-    # rows of `gram`: the DC column, the data, then the columns passed
-    GRAM_DC, GRAM_DATA, GRAM_TONE = GRAM_DC, GRAM_DATA, GRAM_TONE
-
     def gram(self, columns) -> Float[Array, "K K"]:
         """Gram matrix of (dc, y, *columns), each column a weighted complex column as (Re, Im)
-        (`gram_matrix`)."""
+        (`gram_matrix`; rows as `GRAM_*`)."""
         return gram_matrix([(self.dc, None), (self.y_re, self.y_im)] + list(columns))
-
-    def coefficients(self, gram):
-        """Least-squares (c, A) on [dc, the first column of `gram`]."""
-        dc, y, tone = self.GRAM_DC, self.GRAM_DATA, self.GRAM_TONE
-        return solve_normal_2x2(gram[dc, dc], gram[dc, tone], gram[tone, tone], gram[dc, y], gram[tone, y])
 
     def project(self, tone_re, tone_im):
         """Least-squares (c, A) on [dc, tone] (both ω-weighted) and the residual parts."""
