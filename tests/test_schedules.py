@@ -177,6 +177,39 @@ def test_time_domain_fit_equals_a_brute_force_least_squares_fit(schedule):
         assert abs(ref - truth) < 6 * sigma
 
 
+def test_time_domain_basin_grid_equals_explicit_least_squares_costs():
+    """The basin grid's costs come from matrix products of the grid's and the fits' phasor
+    powers (`TimeDomainModel.grid_starts`: t·t from the orders' sum and difference terms).
+    Against NumPy: at every grid point the tone from explicit cosines, (c, A) by `lstsq`; the
+    best grid point and its cost agree (cost to 1e-9). Seven orders, a 40-step random schedule,
+    noisy fits from several depths; dropping a difference term shifts the costs by percents."""
+    from cohflash_jax.estimate.time_domain import TimeDomainModel, TimeDomainPixel
+
+    rng = np.random.default_rng(11)
+    f = np.sort(rng.uniform(1e9, 7e9, 40))
+    weights = np.array([0.1, 0.5, 0.2, 0.3, 0.05, 0.02, 0.01, 0.005])
+    delay_s, half_width_m, points = 3e-9, 0.004, 41
+
+    def tone(depth):
+        tau = delay_s + 2 * depth / C
+        return sum(2 * weights[n] * np.cos(2 * np.pi * n * f * tau) for n in range(1, weights.size))
+
+    depths = rng.uniform(10.0, 20.0, 5)
+    frames = np.stack([7.0 + 30.0 * tone(d + 1e-3) + 2.0 * rng.standard_normal(f.size) for d in depths])
+    pixels = jax.vmap(TimeDomainPixel.of)(jnp.asarray(frames))
+    model = TimeDomainModel(jnp.asarray(f), jnp.asarray(weights), delay_s)
+    best_mm, ceiling = model.grid_starts(pixels, jnp.asarray(depths), half_width_m, points)
+    grid_mm = np.linspace(-1e3 * half_width_m, 1e3 * half_width_m, points)
+    for k, depth in enumerate(depths):
+        y = np.asarray(pixels.y[k])
+        costs = []
+        for offset in grid_mm:
+            design = np.stack([np.ones_like(f), tone(depth + 1e-3 * offset)], axis=1)
+            costs.append(np.sum((y - design @ np.linalg.lstsq(design, y, rcond=None)[0]) ** 2))
+        assert float(best_mm[k]) == pytest.approx(grid_mm[np.argmin(costs)], abs=1e-9)
+        assert float(ceiling[k]) == pytest.approx(min(costs), rel=1e-9)
+
+
 def test_time_domain_fits_in_two_passes_end_as_one_uninterrupted_polish():
     """`TimeDomainML.fit_each` polishes its batch in two passes (`polish_in_passes`): each fit
     must end exactly as `refine_time_domain`'s uninterrupted polish ends it — same steps, same

@@ -86,12 +86,67 @@ class TimeDomainModel(eqx.Module):
         delay = self.system_delay_s + 2 * (depth_m + 1e-3 * offset_mm) / C
         return tone_jets(first_order_phasor(f, delay), self.weights, 1e-3 * 4 * jnp.pi * f / C, derivatives)
 
-    def grid_start(self, pixel: TimeDomainPixel, depth_m, grid_half_width_m: float, grid_points: int):
-        """The basin grid's best offset (mm) from `depth_m` and its projected cost (the
-        polish's ceiling, `descended`)."""
+    def grid_starts(self, pixels: TimeDomainPixel, depths_m, grid_half_width_m: float, grid_points: int):
+        """The basin grid of a batch of fits (`pixels` and `depths_m` with a leading axis F):
+        each fit's best offset (mm) from its depth and the projected cost there (the polish's
+        ceiling, `descended`), each (F,).
+
+        The cost at grid offset δ_g needs only 1·t, y·t and t·t. With z_m = e^{i2πf_mτ} at the
+        fit's depth and ρ_gm = e^{i2πf_m·2δ_g/c}, order n's phasor is (z_m ρ_gm)^n, so
+        1·t = Σ_n 2w_n Re S_n and y·t = Σ_n 2w_n Re Y_n with S_k = Σ_m ρ_gm^k z_m^k and
+        Y_k = Σ_m ρ_gm^k y_m z_m^k; and since Re a·Re b = ½Re(ab) + ½Re(a b̄),
+        t·t = Σ_{n,n'} 2w_n w_n' (Re S_{n+n'} + Re S_{|n−n'|}) (S_0 = N). Each S_k and Y_k of
+        every fit and grid point is one real matrix product of the grid's (G, 2N) table of
+        ρ^k with the fits' (2N, F) powers z^k: no cos/sin per fit, grid point and frame, which
+        were four fifths of the fit's time on a 300-step random schedule (docs/performance.md)."""
+        f = self.frequencies_hz.astype(jnp.float64)
+        n_frames = f.shape[0]
+        orders = self.weights.shape[0] - 1
         grid_mm = jnp.linspace(-1e3 * grid_half_width_m, 1e3 * grid_half_width_m, grid_points)
-        costs = jax.vmap(lambda g: projected_cost(pixel.gram(self.jets(depth_m, g, 0))))(grid_mm)
-        return grid_mm[jnp.argmin(costs)], jnp.min(costs)
+        rho = first_order_phasor(f[None, :], 2e-3 * grid_mm[:, None] / C)  # (G, N) each
+        z = first_order_phasor(f[None, :], self.system_delay_s + 2 * depths_m[:, None] / C)  # (F, N) each
+        y = pixels.y
+        w = self.weights
+        # c_k: t·t = Σ_k c_k Re S_k over k = 0..2K
+        coefficient = [0.0] * (2 * orders + 1)
+        for a in range(1, orders + 1):
+            for b in range(1, orders + 1):
+                coefficient[a + b] = coefficient[a + b] + 2 * w[a] * w[b]
+                coefficient[abs(a - b)] = coefficient[abs(a - b)] + 2 * w[a] * w[b]
+        # Re(Σ_m ρ^k x_m) over the grid and the fits: Re ρ^k·Re x − Im ρ^k·Im x, two real
+        # products contracting the frames
+        real_part = lambda r, x: r[0] @ x[0].T - r[1] @ x[1].T
+        zeros = jnp.zeros((grid_points, y.shape[0]))
+
+        def order_k(carry, weights_k):
+            """S_k (and Y_k for the modelled orders k ≤ K) from ρ^k and z^k, carried: in a
+            loop XLA keeps each power once instead of recomputing the chain of products, and
+            z's cos/sin, in every consumer."""
+            rho_k, z_k, one_t, y_t, t_t = carry
+            two_w, c = weights_k
+            s_k = real_part(rho_k, z_k)  # (G, F)
+            if two_w is not None:
+                one_t, y_t = one_t + two_w * s_k, y_t + two_w * real_part(rho_k, (y * z_k[0], y * z_k[1]))
+            return (cmul(rho_k, rho), cmul(z_k, z), one_t, y_t, t_t + c * s_k), None
+
+        c = jnp.stack(coefficient[1:])
+        carry = (rho, z, zeros, zeros, zeros + coefficient[0] * n_frames)
+        carry, _ = jax.lax.scan(order_k, carry, (2 * w[1:], c[:orders]))
+        carry, _ = jax.lax.scan(order_k, carry, (None, c[orders:]))  # k > K: t·t's terms alone
+        _, _, one_t, y_t, t_t = carry
+        ones_y = jnp.sum(y, axis=1)
+        gram = jnp.stack(
+            [
+                jnp.stack([jnp.full_like(one_t, n_frames), jnp.broadcast_to(ones_y, one_t.shape), one_t]),
+                jnp.stack(
+                    [jnp.broadcast_to(ones_y, one_t.shape), jnp.broadcast_to(jnp.sum(y * y, axis=1), one_t.shape), y_t]
+                ),
+                jnp.stack([one_t, y_t, t_t]),
+            ]
+        )  # (3, 3, G, F): rows as `window_model.GRAM_*`
+        costs = jax.vmap(jax.vmap(projected_cost, in_axes=-1), in_axes=-1)(gram)  # (F, G)
+        best = jnp.argmin(costs, axis=1)
+        return grid_mm[best], jnp.min(costs, axis=1)
 
     def polish(self, pixel: TimeDomainPixel, depth_m, start_mm, max_steps: int) -> Polish:
         """Newton's polish of the offset (mm) from `depth_m`, slope and curvature from the Gram
@@ -137,7 +192,11 @@ def refine_time_domain(
     column, the data and the tone's jets (`tone_jets`)."""
     model = TimeDomainModel(frequencies_hz, weights, system_delay_s)
     pixel = TimeDomainPixel.of(r)
-    start, ceiling = model.grid_start(pixel, coarse_depth_m, grid_half_width_m, grid_points)
+    batch = lambda a: jnp.asarray(a)[None]
+    starts, ceilings = model.grid_starts(
+        jax.tree.map(batch, pixel), batch(coarse_depth_m), grid_half_width_m, grid_points
+    )
+    start, ceiling = starts[0], ceilings[0]
     p = model.polish(pixel, coarse_depth_m, start, max_steps)
     return model.finish(pixel, coarse_depth_m, p.value, p.succeeded, p.num_steps, ceiling, noise_var)
 
@@ -209,8 +268,7 @@ class TimeDomainML(AbstractDepthEstimator):
             lambda leaf: jnp.broadcast_to(leaf, (k, *leaf.shape)).reshape(k * p, *leaf.shape[1:]), pixels
         )
         depths, variances = starts.reshape(-1), jnp.tile(noise_var, k)
-        grid = lambda pix, d: model.grid_start(pix, d, self.grid_half_width_m, self.grid_points)
-        offsets, ceilings = jax.vmap(grid)(fits, depths)
+        offsets, ceilings = model.grid_starts(fits, depths, self.grid_half_width_m, self.grid_points)
 
         def polish_one(index, start, steps):
             q = model.polish(jax.tree.map(lambda leaf: leaf[index], fits), depths[index], start, steps)
