@@ -82,6 +82,20 @@ def test_energy_bounds_hold_for_every_carrier_phase():
         assert worst >= 0.9 * scale[g]  # and nearly reached: the bound is the sup over φ
 
 
+def test_delay_moments_of_an_evenly_spaced_grid_equal_the_exponentials():
+    """`delay_moments` takes an evenly spaced grid's phasors as powers of one step's; a grid of
+    delays over a 38 m window (steps equal only to 2e-12 of a step, from rounding) takes that
+    path too, and its moments equal those of e^{i2πfτ} per entry to 1e-12 of their size."""
+    rng = np.random.default_rng(3)
+    f = np.sort(rng.uniform(0.1e9, 6e9, 500))
+    delays = 3e-9 + 2 * np.arange(0.0, 38.0, 0.00635) / 299_792_458.0
+    norm_sq, mean, sum_sq = delay_moments(f, delays)
+    v = np.exp(2j * math.pi * np.multiply.outer(delays, f))
+    assert np.allclose(norm_sq, f.size)
+    assert np.max(np.abs(mean - v.mean(axis=1))) < 1e-12
+    assert np.max(np.abs(sum_sq - (v * v).sum(axis=1))) < 1e-12 * f.size
+
+
 def _false_alarms(inst: cf.Instrument, alpha: float, seed: int, side: int = 64) -> int:
     rng = np.random.default_rng(seed)
     n = inst.sweep.num_steps
