@@ -331,21 +331,25 @@ def test_sub_tiles_give_the_same_pixels_as_one_tile(paper_instrument, planar_mon
     """The streamed path cuts tiles into sub-tiles (the last one padded): per-pixel results
     must not depend on where the cuts fall, for frames and per-pixel maps alike."""
     from cohflash_jax.reconstruct import TileDispatcher, build_plan, process_tile
+    from cohflash_jax.runtime import quick_compile
 
     f = np.asarray(planar_monte_carlo[2])
     n = f.shape[1]
     frames = f.reshape(4, n, -1)
     dark = np.random.default_rng(0).normal(0.0, 2.0, (4, frames.shape[-1])).astype(np.float32)
     frames[3, :, 5] = 512  # a dead pixel in the first sub-tile
-    plan = build_plan(paper_instrument, OPTS["ml"], 16383.0)
-    whole = {
-        k: np.asarray(v) for k, v in process_tile(plan, jax.numpy.asarray(frames), jax.numpy.asarray(dark)).items()
-    }
-    pending = TileDispatcher(plan, sub_px=24).dispatch(frames, dark)  # 24 + 24 + 16 (padded to 24)
-    assert not pending.holds_frames  # pieces are copies: the frames' buffer may take the next tile
-    parts = pending.gather()
-    contiguous = np.ascontiguousarray(frames)
-    assert TileDispatcher(plan, sub_px=contiguous.shape[-1]).dispatch(contiguous, dark).holds_frames
+    # the quick compile, as `reconstruct_array` compiles captures this small: the programs are
+    # the ones the rest of the suite compiles (the cuts do not depend on XLA's optimisation)
+    with quick_compile():
+        plan = build_plan(paper_instrument, OPTS["ml"], 16383.0)
+        whole = {
+            k: np.asarray(v) for k, v in process_tile(plan, jax.numpy.asarray(frames), jax.numpy.asarray(dark)).items()
+        }
+        pending = TileDispatcher(plan, sub_px=24).dispatch(frames, dark)  # 24 + 24 + 16 (padded to 24)
+        assert not pending.holds_frames  # pieces are copies: the frames' buffer may take the next tile
+        parts = pending.gather()
+        contiguous = np.ascontiguousarray(frames)
+        assert TileDispatcher(plan, sub_px=contiguous.shape[-1]).dispatch(contiguous, dark).holds_frames
     assert parts.keys() == whole.keys()
     assert parts["fit_status"][5] == Status.DEAD and parts["valid"].sum() == frames.shape[-1] - 1
     np.testing.assert_array_equal(parts["fit_status"], whole["fit_status"])
@@ -467,17 +471,21 @@ def test_straggler_pass_gives_each_pixel_its_uninterrupted_polish():
         rng.normal(size=tones.shape) + 1j * rng.normal(size=tones.shape)
     )
     half, points, candidates = grid_for(bin_m, C / (2 * (start_hz + 0.5 * step_hz * n)))
-    fit = lambda first: refine_ml_uniform(
-        model,
-        windows,
-        jnp.asarray(k0),
-        jnp.asarray(coarse),
-        jnp.full(pixels, noise_var),
-        grid_half_width_m=half,
-        grid_points=points,
-        candidates=candidates,
-        max_steps=16,
-        first_pass_steps=first,
+    # jitted (one program a pass count), not op by op: hundreds of small compiles otherwise
+    fit = jax.jit(
+        lambda first: refine_ml_uniform(
+            model,
+            windows,
+            jnp.asarray(k0),
+            jnp.asarray(coarse),
+            jnp.full(pixels, noise_var),
+            grid_half_width_m=half,
+            grid_points=points,
+            candidates=candidates,
+            max_steps=16,
+            first_pass_steps=first,
+        ),
+        static_argnums=0,
     )
     whole, resumed = fit(16), fit(1)
     steps = np.asarray(whole.num_steps)

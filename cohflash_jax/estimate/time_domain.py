@@ -95,10 +95,10 @@ class TimeDomainModel(eqx.Module):
         fit's depth and ρ_gm = e^{i2πf_m·2δ_g/c}, order n's phasor is (z_m ρ_gm)^n, so
         1·t = Σ_n 2w_n Re S_n and y·t = Σ_n 2w_n Re Y_n with S_k = Σ_m ρ_gm^k z_m^k and
         Y_k = Σ_m ρ_gm^k y_m z_m^k; and since Re a·Re b = ½Re(ab) + ½Re(a b̄),
-        t·t = Σ_{n,n'} 2w_n w_n' (Re S_{n+n'} + Re S_{|n−n'|}) (S_0 = N). Each S_k and Y_k of
-        every fit and grid point is one real matrix product of the grid's (G, 2N) table of
-        ρ^k with the fits' (2N, F) powers z^k: no cos/sin per fit, grid point and frame, which
-        were four fifths of the fit's time on a 300-step random schedule (docs/performance.md)."""
+        t·t = Σ_{n,n'} 2w_n w_n' (Re S_{n+n'} + Re S_{|n−n'|}) (S_0 = N). Re S_k and Re Y_k of
+        every fit and grid point are real matrix products of the grid's (G, N) powers ρ^k with
+        the fits' (F, N) powers z^k: no cos/sin per fit, grid point and frame, which were four
+        fifths of the fit's time on a 300-step random schedule (docs/performance.md)."""
         f = self.frequencies_hz.astype(jnp.float64)
         n_frames = f.shape[0]
         orders = self.weights.shape[0] - 1
