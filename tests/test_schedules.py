@@ -108,6 +108,19 @@ def test_independent_random_schedule_with_hertz_gaps_reconstructs_at_its_crlb(tm
     assert np.all(np.abs(depth - 17.3) < 6 * sigma)
 
 
+def explicit_tone(f, weights, delay_s, depth_m):
+    """Σ_n 2 w_n cos(2π n f τ) from explicit cosines (the NumPy reference of the time-domain tests)."""
+    tau = delay_s + 2 * depth_m / C
+    return sum(2 * weights[n] * np.cos(2 * np.pi * n * f * tau) for n in range(1, weights.size))
+
+
+def lstsq_fit(tone, r):
+    """(c, A) on [1, tone] by `lstsq` and the residual energy."""
+    design = np.stack([np.ones_like(tone), tone], axis=1)
+    coef = np.linalg.lstsq(design, r, rcond=None)[0]
+    return coef, np.sum((r - design @ coef) ** 2)
+
+
 @pytest.mark.parametrize("schedule", ["uniform 3000", "random 40"])
 def test_time_domain_fit_equals_a_brute_force_least_squares_fit(schedule):
     """The time-domain ML (closed-form tone jets, costs from Gram matrices) against NumPy: the
@@ -125,8 +138,7 @@ def test_time_domain_fit_equals_a_brute_force_least_squares_fit(schedule):
     delay_s, half_width_m = 3e-9, 0.004
 
     def tone(depth):
-        tau = delay_s + 2 * depth / C
-        return sum(2 * weights[n] * np.cos(2 * np.pi * n * f * tau) for n in range(1, weights.size))
+        return explicit_tone(f, weights, delay_s, depth)
 
     def tone_slope(depth):
         tau = delay_s + 2 * depth / C
@@ -135,9 +147,7 @@ def test_time_domain_fit_equals_a_brute_force_least_squares_fit(schedule):
         )
 
     def fit(depth, r):
-        design = np.stack([np.ones_like(f), tone(depth)], axis=1)
-        coef = np.linalg.lstsq(design, r, rcond=None)[0]
-        return coef, np.sum((r - design @ coef) ** 2)
+        return lstsq_fit(tone(depth), r)
 
     noise_var = 4.0
     truths = rng.uniform(10.0, 20.0, 6)
@@ -191,8 +201,7 @@ def test_time_domain_basin_grid_equals_explicit_least_squares_costs():
     delay_s, half_width_m, points = 3e-9, 0.004, 41
 
     def tone(depth):
-        tau = delay_s + 2 * depth / C
-        return sum(2 * weights[n] * np.cos(2 * np.pi * n * f * tau) for n in range(1, weights.size))
+        return explicit_tone(f, weights, delay_s, depth)
 
     depths = rng.uniform(10.0, 20.0, 5)
     frames = np.stack([7.0 + 30.0 * tone(d + 1e-3) + 2.0 * rng.standard_normal(f.size) for d in depths])
@@ -202,10 +211,7 @@ def test_time_domain_basin_grid_equals_explicit_least_squares_costs():
     grid_mm = np.linspace(-1e3 * half_width_m, 1e3 * half_width_m, points)
     for k, depth in enumerate(depths):
         y = np.asarray(pixels.y[k])
-        costs = []
-        for offset in grid_mm:
-            design = np.stack([np.ones_like(f), tone(depth + 1e-3 * offset)], axis=1)
-            costs.append(np.sum((y - design @ np.linalg.lstsq(design, y, rcond=None)[0]) ** 2))
+        costs = [lstsq_fit(tone(depth + 1e-3 * offset), y)[1] for offset in grid_mm]
         assert float(best_mm[k]) == pytest.approx(grid_mm[np.argmin(costs)], abs=1e-9)
         assert float(ceiling[k]) == pytest.approx(min(costs), rel=1e-9)
 

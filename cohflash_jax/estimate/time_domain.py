@@ -24,8 +24,8 @@ from .window_model import (
     jet_scale,
     phasor_jet,
     projected_coefficients,
-    projected_cost,
     projected_cost_slope_and_curvature,
+    projected_residual_energy,
 )
 
 
@@ -134,17 +134,12 @@ class TimeDomainModel(eqx.Module):
         carry, _ = jax.lax.scan(order_k, carry, (2 * w[1:], c[:orders]))
         carry, _ = jax.lax.scan(order_k, carry, (None, c[orders:]))  # k > K: t·t's terms alone
         _, _, one_t, y_t, t_t = carry
+        # the Gram matrix's constant and data rows, one a fit, against every grid point's products
         ones_y = jnp.sum(y, axis=1)
-        gram = jnp.stack(
-            [
-                jnp.stack([jnp.full_like(one_t, n_frames), jnp.broadcast_to(ones_y, one_t.shape), one_t]),
-                jnp.stack(
-                    [jnp.broadcast_to(ones_y, one_t.shape), jnp.broadcast_to(jnp.sum(y * y, axis=1), one_t.shape), y_t]
-                ),
-                jnp.stack([one_t, y_t, t_t]),
-            ]
-        )  # (3, 3, G, F): rows as `window_model.GRAM_*`
-        costs = jax.vmap(jax.vmap(projected_cost, in_axes=-1), in_axes=-1)(gram)  # (F, G)
+        rows = jnp.stack(
+            [jnp.stack([jnp.full_like(ones_y, n_frames), ones_y]), jnp.stack([ones_y, jnp.sum(y * y, axis=1)])]
+        )  # (2, 2, F): rows as `window_model.GRAM_DC`, `GRAM_DATA`
+        costs = projected_residual_energy(rows, one_t, y_t, t_t).T  # (F, G)
         best = jnp.argmin(costs, axis=1)
         return grid_mm[best], jnp.min(costs, axis=1)
 

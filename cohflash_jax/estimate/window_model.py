@@ -266,10 +266,11 @@ def projected_coefficients(g):
     return solve_normal_2x2(g[dc, dc], g[dc, t], g[t, t], g[dc, y], g[t, y])
 
 
-def _residual_energy(g, dc_t, y_t, t_t):
+def projected_residual_energy(g, dc_t, y_t, t_t):
     """|y − c·dc − A·t|² at the least-squares (c, A), from the Gram matrix's dc and data rows
     and the tone's products dc·t, y·t, t·t (given apart: `projected_cost_slope_and_curvature`
-    moves the tone along its expansion)."""
+    moves the tone along its expansion, `time_domain.TimeDomainModel.grid_starts` has them for
+    a whole grid). Elementwise: arrays broadcast."""
     dc, y = GRAM_DC, GRAM_DATA
     c, a = solve_normal_2x2(g[dc, dc], dc_t, t_t, g[dc, y], y_t)
     return g[y, y] - 2 * (c * g[dc, y] + a * y_t) + c * c * g[dc, dc] + 2 * c * a * dc_t + a * a * t_t
@@ -278,7 +279,7 @@ def _residual_energy(g, dc_t, y_t, t_t):
 def projected_cost(g):
     """|y − c·dc − A·t|² at the least-squares (c, A), from the Gram matrix of (dc, y, t)."""
     dc, y, t = GRAM_DC, GRAM_DATA, GRAM_TONE
-    return _residual_energy(g, g[dc, t], g[y, t], g[t, t])
+    return projected_residual_energy(g, g[dc, t], g[y, t], g[t, t])
 
 
 def projected_cost_slope_and_curvature(g):
@@ -294,7 +295,7 @@ def projected_cost_slope_and_curvature(g):
         dc_t = g[dc, t] + s * (g[dc, d1] + 0.5 * s * g[dc, d2])
         y_t = g[y, t] + s * (g[y, d1] + 0.5 * s * g[y, d2])
         t_t = g[t, t] + s * (2 * g[t, d1] + s * (g[d1, d1] + g[t, d2] + s * (g[d1, d2] + 0.25 * s * g[d2, d2])))
-        return _residual_energy(g, dc_t, y_t, t_t)  # |y − c·dc − a·t(s)|²
+        return projected_residual_energy(g, dc_t, y_t, t_t)  # |y − c·dc − a·t(s)|²
 
     slope = lambda s: jax.jvp(along, (s,), (jnp.ones_like(s),))[1]
     origin = jnp.zeros_like(g[dc, dc])
