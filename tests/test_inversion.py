@@ -612,7 +612,7 @@ def test_a_fit_whose_tone_cancels_the_offset_is_flagged_not_valid():
 
 
 @pytest.mark.parametrize("path", ["table", "window"])
-def test_fits_that_trade_depth_against_the_offset_near_dc_are_flagged(path, monkeypatch):
+def test_fits_that_trade_depth_against_the_offset_near_dc_are_flagged(path, monkeypatch, request):
     """35 frames (10 Hz mode): four pixels at 5 % and 3 % reflectance (frames in tests/data)
     whose fits slid from noise peaks ~1 bin deep to 4–8 mm, ~100 mm off. The DFT-window fit
     reported SNRs of 16–21 dB and amplitudes 3–7× the echo's there, so the SNR threshold does
@@ -629,7 +629,11 @@ def test_fits_that_trade_depth_against_the_offset_near_dc_are_flagged(path, monk
     from cohflash_jax.fisher import MAX_VARIANCE_INFLATION
 
     if path == "window":
+        from cohflash_jax.reconstruct import forget_setups
+
         monkeypatch.setattr(table, "TABLE_MAX_FRAMES", 0)
+        forget_setups()  # the plans kept from earlier captures chose the table...
+        request.addfinalizer(forget_setups)  # ...and this one's must not outlive the patch
     frames = np.load(Path(__file__).parent / "data" / "near_dc_fits_35_frames.npy")[:, :, None, :]
     inst = cf.Instrument.ten_hz_mode()
     sweep, n = inst.sweep, frames.shape[1]

@@ -15,10 +15,25 @@ from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..estimate.drift import initial_common_drift
 from ..estimate.iq import align_carrier_static, derotate, iq_from_frames
 from ..hybrid import Hybrid
+from ..runtime import async_filter_jit
 from ..status import Status
 from .common import MIN_FRAMES, MIN_PIXELS, Estimate, tone_sequences
 from .hybrid_stage import common_carrier, fit_hybrid, fit_offsets, pixel_statistics
 from .modulator_stage import exact_model_depths_m, fit_modulator
+
+iq_program = async_filter_jit(iq_from_frames)
+
+
+@async_filter_jit
+def carrier_aligned_sequences(frames, iq_weights, iq_bias, carrier_rad):
+    """I/Q of frames (4, N, P) through a hybrid's matrix, the common carrier drift
+    `carrier_rad` (N,) removed, rotated onto each pixel's carrier axis → r (N, P) and the
+    noise variances (P,). One compiled program, kept on disk."""
+    i, q = iq_from_frames(frames, iq_weights, iq_bias)
+    i, q = derotate(i, q, carrier_rad[:, None])
+    r, noise_var, _ = align_carrier_static(i, q)
+    return r, noise_var
+
 
 # Survey statuses of pixels a calibration may use. dc_edge pixels are usable: through an
 # uncalibrated hybrid the untracked turbulent carrier makes the survey's mean term wander near
@@ -147,7 +162,7 @@ def calibrate_hybrid(
     frames = frames - port_means[:, None]
     data = jnp.asarray(frames)
     iq_w, iq_b = hybrid.iq_matrix_dn(1.0)
-    drift, drift_note = initial_common_drift(*iq_from_frames(data, iq_w, iq_b))
+    drift, drift_note = initial_common_drift(*iq_program(data, iq_w, iq_b))
     drifting = bool(np.any(drift != 0))  # without a drift u ≡ 1: fitting it would only fit noise
     u = jnp.asarray(np.exp(1j * drift))
     params = None
@@ -165,10 +180,8 @@ def calibrate_hybrid(
         drift removed. A time-domain fit needs the uncentred I/Q where the hybrid (offsets
         included) is calibrated: a mean removed before derotation would wander after it, and
         pass for a roll-off; a calibrated hybrid cancels the common mode, so no leakage."""
-        source = data + jnp.asarray(port_means)[:, None] if uncentred else data
-        i, q = iq_from_frames(source, *hyb.iq_matrix_dn(1.0))
-        i, q = derotate(i, q, jnp.asarray(carrier)[:, None])
-        r, noise_var, _ = align_carrier_static(i, q)
+        source = frames + port_means[:, None] if uncentred else data
+        r, noise_var = carrier_aligned_sequences(source, *hyb.iq_matrix_dn(1.0), np.asarray(carrier, np.float64))
         return np.asarray(r), np.asarray(noise_var)
 
     for iteration in range(iterations):
@@ -188,7 +201,7 @@ def calibrate_hybrid(
         usable = status == Status.OK
         tone = tone_sequences(freqs, 2 * stand_in_depths(depth, usable) / C, modulator)
         for _ in range(inner_iterations):  # alternate: hybrid given the drift, drift given the hybrid
-            stats = pixel_statistics(data, tone * u[:, None])
+            stats = pixel_statistics(data, np.asarray(tone) * np.asarray(u)[:, None])
             fit = fit_hybrid(stats, nominal, params, usable)
             params = fit.params
             hybrid_h = jnp.asarray(0.5 * fit.relative_gains * np.exp(1j * fit.phases_rad))
@@ -320,7 +333,7 @@ def calibrate_hybrid(
     views = {}
     for name, hyb in (("nominal", Hybrid(tuple(nominal))), ("calibrated", calibrated)):
         w_iq, b_iq = hyb.iq_matrix_dn(1.0)
-        i, q = iq_from_frames(data[:, :, strongest : strongest + 1], w_iq, b_iq)
+        i, q = iq_program(frames[:, :, strongest : strongest + 1], w_iq, b_iq)
         views[name] = np.asarray(i[:, 0]) + 1j * np.asarray(q[:, 0])
     diagnostics = {
         "frequencies_hz": np.asarray(freqs),

@@ -6,13 +6,13 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
 from ..modulator import MZM, beat_spectrum
+from ..runtime import async_filter_jit
 
 # A parameter is "not identified" when its 1σ exceeds these (the data then say nothing useful)
 PHASE_SIGMA_LIMIT_RAD = math.radians(3.0)
@@ -34,23 +34,40 @@ class Estimate:
 
 
 def tone_sequences(frequencies_hz, delay_s: Float[Array, " P"], modulator: MZM) -> Float[Array, "N P"]:
-    """S(2π f_m τ_p) with the modulator's (frequency-dependent) sideband weights, float64."""
-    f = jnp.asarray(frequencies_hz, jnp.float64)
+    """S(2π f_m τ_p) with the modulator's (frequency-dependent) sideband weights, float64.
+    One compiled program whatever the modulator's values (they are its inputs, not constants)."""
+    return _tone_program(
+        jnp.asarray(frequencies_hz, jnp.float64), jnp.asarray(delay_s, jnp.float64), modulator_inputs(modulator)
+    )
+
+
+def modulator_inputs(modulator: MZM) -> MZM:
+    """`modulator` with its values as float64 arrays, so that a program taking it is compiled
+    once for any value (a Python float would be compiled into it)."""
+    return jax.tree.map(lambda v: jnp.asarray(v, jnp.float64), modulator)
+
+
+@async_filter_jit
+def _tone_program(f, delay_s, modulator: MZM):
     w = modulator.weights(f)  # (N, K)
-    cycles = f[:, None] * jnp.asarray(delay_s, jnp.float64)[None, :]
+    cycles = f[:, None] * delay_s[None, :]
     psi = 2 * jnp.pi * (cycles - jnp.floor(cycles))
     return beat_spectrum(psi, w[:, None, :])
 
 
-@eqx.filter_jit
-def residuals_and_jacobian(residual_fn, params, args):
-    return residual_fn(params, args), jax.jacfwd(residual_fn)(params, args)
+def least_squares_moments(residual_fn, params, args, clusters: int | None):
+    """What `covariance` needs of a least-squares fit at `params`, in one program: χ², JᵀJ
+    and, with `clusters`, each cluster's score Σ J·r (see `covariance`)."""
+    res, jac = residual_fn(params, args), jax.jacfwd(residual_fn)(params, args)
+    scores = None if clusters is None else jnp.sum((jac * res[:, None]).reshape(clusters, -1, jac.shape[1]), axis=1)
+    return jnp.sum(res**2), jac.T @ jac, scores
 
 
-def covariance(residual_fn, params, args, dof, clusters: int | None = None):
+def covariance(moments_program, params, args, dof, clusters: int | None = None):
     """Covariance of least-squares parameters from the Jacobian at the optimum,
-    (JᵀJ)⁻¹·χ²/dof (residuals whitened by the measured noise), with χ², whether JᵀJ is
-    singular (an unidentifiable direction: its variances are then ∞) and the Jacobian.
+    (JᵀJ)⁻¹·χ²/dof (residuals whitened by the measured noise), with χ² and whether JᵀJ is
+    singular (an unidentifiable direction: its variances are then ∞). `moments_program`:
+    the fit's `least_squares_moments` as a compiled program of (params, args, clusters).
 
     `clusters`: the residuals come in that many consecutive groups whose errors may be
     correlated within a group (the frames of a calibration: a common carrier-drift error moves
@@ -59,18 +76,17 @@ def covariance(residual_fn, params, args, dof, clusters: int | None = None):
     (JᵀJ)⁻¹ (Σ_g s_g s_gᵀ) (JᵀJ)⁻¹ with s_g the group's score Σ J·r, which holds for any
     correlation within a group given many groups (the correlations are kept, the standard
     deviations scaled)."""
-    res, jac = residuals_and_jacobian(residual_fn, params, args)
-    chi2 = float(jnp.sum(res**2))
-    jtj = np.asarray(jac.T @ jac)
+    chi2, jtj, scores = moments_program(params, args, clusters=clusters)
+    chi2, jtj = float(chi2), np.asarray(jtj)
     evals = np.linalg.eigvalsh(jtj)
     singular = evals[0] <= 1e-12 * max(evals[-1], 1e-300)
     inverse = np.linalg.pinv(jtj)
     cov = inverse * max(chi2 / max(dof, 1), 1e-300)
     if clusters is not None and clusters > jtj.shape[0]:
-        scores = np.asarray(jnp.sum((jac * res[:, None]).reshape(clusters, -1, jac.shape[1]), axis=1))
+        scores = np.asarray(scores)
         robust = inverse @ (scores.T @ scores) @ inverse * clusters / (clusters - jtj.shape[0])
         inflate = np.sqrt(np.maximum(np.diag(robust) / np.maximum(np.diag(cov), 1e-300), 1.0))
         cov = cov * inflate[:, None] * inflate[None, :]
     if singular:
         cov = cov + np.diag(np.where(np.diag(jtj) <= 0, np.inf, 0.0))
-    return cov, chi2, singular, np.asarray(jac)
+    return cov, chi2, singular

@@ -12,7 +12,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from ..runtime import async_filter_jit
-from .common import GAIN_SIGMA_LIMIT, PHASE_SIGMA_LIMIT_RAD, covariance
+from .common import GAIN_SIGMA_LIMIT, PHASE_SIGMA_LIMIT_RAD, covariance, least_squares_moments
 
 
 @jax.jit
@@ -55,6 +55,9 @@ def _hybrid_matrices(nominal_rad, params):
     return 0.5 * gain[:, None, None] * jnp.stack([jnp.stack([c, -s], -1), jnp.stack([-s, -c], -1)], -2)
 
 
+hybrid_matrices = async_filter_jit(_hybrid_matrices)
+
+
 def _hybrid_design(nominal_rad, params, stats):
     """Whitened per-pixel design M_p (8×2) and data y_p (8,) of the projected problem."""
     h = _hybrid_matrices(nominal_rad, params)  # (4, 2, 2)
@@ -83,6 +86,13 @@ def hybrid_residuals(params, args):
     return ((jnp.einsum("paj,pj->pa", m, z) - y) * used[:, None]).reshape(-1)
 
 
+@async_filter_jit
+def hybrid_fit_moments(params, args, *, clusters=None):
+    """`least_squares_moments` of the hybrid fit: one compiled program, kept on disk."""
+    return least_squares_moments(hybrid_residuals, params, args, clusters)
+
+
+@async_filter_jit
 def pixel_amplitudes(nominal_rad, params, stats):
     """Fitted complex tone amplitudes z_p (carrier phase included) at given hybrid parameters."""
     m, y = _hybrid_design(nominal_rad, params, stats)
@@ -166,15 +176,15 @@ def fit_hybrid(stats: dict, nominal_rad, start=None, used=None) -> HybridFit:
     """Stage 1: per-CCD phase errors and gains (gauge CCD 1) from the pixel statistics of the
     pixels `used` (P,) bool (all by default; the others are weighted out, not dropped, so that
     the programs keep the arrays' shapes whatever the count)."""
-    nominal = jnp.asarray(nominal_rad, jnp.float64)
+    nominal = np.asarray(nominal_rad, np.float64)
     rank = np.asarray(stats["rank"])
     used = np.ones(rank.shape, bool) if used is None else np.asarray(used, bool)
-    args = (nominal, stats, jnp.asarray(used, jnp.float64))
-    y0 = jnp.zeros(6) if start is None else jnp.asarray(start, jnp.float64)
+    args = (nominal, stats, used.astype(np.float64))
+    y0 = np.zeros(6) if start is None else np.asarray(start, np.float64)
     params, succeeded, steps = solve_hybrid(y0, args)
-    succeeded = bool(succeeded)
+    params, succeeded = np.asarray(params), bool(succeeded)
     dof = int(4 * rank[used].sum() - 2 * used.sum() - 6)
-    cov, chi2, singular, _ = covariance(hybrid_residuals, params, args, dof)
+    cov, chi2, singular = covariance(hybrid_fit_moments, params, args, dof)
     sig = np.sqrt(np.maximum(np.diag(cov), 0))
     z = np.where(used, np.asarray(pixel_amplitudes(nominal, params, stats)), 0.0)
     note = None
@@ -223,7 +233,7 @@ def fit_offsets(port_means_dn, stats: dict, fit: HybridFit, dark_dn: np.ndarray 
 
     Only o_k − g_k·o_1 is observable; o_1 comes from the dark frame when given, else the
     gauge o_1 = 0 (the I/Q combination cancels any offset ∝ g_k, so depth is unaffected)."""
-    h = np.asarray(_hybrid_matrices(jnp.asarray(fit.nominal_rad), jnp.asarray(fit.params)))
+    h = np.asarray(hybrid_matrices(np.asarray(fit.nominal_rad, np.float64), np.asarray(fit.params, np.float64)))
     z = np.stack([fit.amplitudes.real, fit.amplitudes.imag], -1)[fit.used]  # (P used, 2)
     s_mean = np.asarray(stats["s_mean"])[fit.used]
     s_vec = np.stack([s_mean.real, s_mean.imag], -1)  # (P, 2)

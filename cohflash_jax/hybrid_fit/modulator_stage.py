@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import jax.flatten_util
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
@@ -14,7 +14,7 @@ import optimistix as optx
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..modulator import MZM, beat_spectrum, sideband_weights
 from ..runtime import async_filter_jit
-from .common import Estimate, covariance
+from .common import Estimate, covariance, least_squares_moments, modulator_inputs
 
 
 def _modulator_x(x0, u, f, f_max):
@@ -40,9 +40,19 @@ def modulator_residuals(free, args):
     return (m * (r - amp * s - off) / noise_sigma[None, :]).reshape(-1)
 
 
-def _flat_modulator_residuals(flat, args):
-    unravel, inner = args
-    return modulator_residuals(unravel(flat), inner)
+# the fitted parameters, in the order of the covariance's rows
+FREE_PARAMETERS = ("log_x0", "rolloff_u")
+
+
+def flat_modulator_residuals(flat, args):
+    """`modulator_residuals` of the free parameters as a vector (`FREE_PARAMETERS`' order)."""
+    return modulator_residuals(dict(zip(FREE_PARAMETERS, flat)), args)
+
+
+@async_filter_jit
+def modulator_fit_moments(flat, args, *, clusters=None):
+    """`least_squares_moments` of the modulator fit: one compiled program, kept on disk."""
+    return least_squares_moments(flat_modulator_residuals, flat, args, clusters)
 
 
 @dataclasses.dataclass
@@ -79,16 +89,17 @@ def block_jackknife_sigma(value: dict, args: tuple, blocks: int) -> dict:
     # each leave-a-block-out fit starts at the full fit and needs its parameters only to a small
     # fraction of their spread (the jackknife σ itself is uncertain by ~1/√(2G)): a looser
     # tolerance than the full fit's moved σ by ~3e-9 of itself and saves ~30 % of the solves' time
+    start = {k: np.asarray(v, np.float64) for k, v in value.items()}  # arrays: one program for any start
     fits = []
     for a, b in zip(edges[:-1], edges[1:]):
         weight = np.ones(n)
         weight[a:b] = 0.0
-        fitted, _, _ = solve_modulator(value, args[:-1] + (jnp.asarray(weight),), rtol=JACKKNIFE_RTOL, max_steps=50)
+        fitted, _, _ = solve_modulator(start, args[:-1] + (weight,), rtol=JACKKNIFE_RTOL, max_steps=50)
         fits.append({k: float(v) for k, v in fitted.items()})
     out = {}
     for k in value:
         theta = np.array([f[k] for f in fits])
-        out[k] = jnp.asarray(math.sqrt((blocks - 1) / blocks * np.sum((theta - theta.mean()) ** 2)))
+        out[k] = math.sqrt((blocks - 1) / blocks * np.sum((theta - theta.mean()) ** 2))
     return out
 
 
@@ -105,41 +116,42 @@ def fit_modulator(
     (Fitting θ_b as well was tried and dropped: β and θ_b trade off through the 2nd-harmonic
     ratio, and the joint fit came out 7σ from the true bias on a simulated capture — a
     confident wrong number. The bias is a setting of the modulator's bias controller.)"""
-    f = jnp.asarray(frequencies_hz, jnp.float64)
+    f = np.asarray(frequencies_hz, np.float64)
     f_max = float(f[-1])
     order = int(start.max_order)
     p = r.shape[1]
     x0 = 0.5 * float(start.modulation_index)
-    params0 = {"depth_mm": jnp.zeros(p), "log_x0": jnp.asarray(math.log(max(x0, 1e-3))), "rolloff_u": jnp.asarray(0.0)}
+    params0 = {"depth_mm": np.zeros(p), "log_x0": np.asarray(math.log(max(x0, 1e-3))), "rolloff_u": np.asarray(0.0)}
     # the depths stay at the reconstruction's (errors of ~10 µm shift the tone's phase by
     # ~2e-3 rad at 6 GHz: nothing the amplitudes or harmonic ratios notice), so only two
     # global unknowns remain and the Jacobian is cheap
-    free = ("log_x0", "rolloff_u")
-    y0 = {k: params0[k] for k in free}
-    fixed = {k: v for k, v in params0.items() if k not in free}
+    y0 = {k: params0[k] for k in FREE_PARAMETERS}
+    fixed = {k: v for k, v in params0.items() if k not in FREE_PARAMETERS}
     args = (
         f,
-        jnp.asarray(r, jnp.float64),
-        jnp.sqrt(jnp.asarray(noise_var, jnp.float64)),
-        jnp.asarray(delay0_s, jnp.float64),
+        np.asarray(r, np.float64),
+        np.sqrt(np.asarray(noise_var, np.float64)),
+        np.asarray(delay0_s, np.float64),
         float(start.bias_rad),
         order,
         fixed,
-        jnp.ones(r.shape[0]),
+        np.ones(r.shape[0]),
     )
     val, converged, _ = solve_modulator(y0, args, rtol=1e-9, max_steps=200)
     converged = bool(converged)
-    flat, unravel = jax.flatten_util.ravel_pytree(val)
+    val = {k: float(v) for k, v in val.items()}
+    flat = np.array([val[k] for k in FREE_PARAMETERS])
     dof = r.size - flat.size - 2 * p
     # clustered by frame: a residual error of the common carrier drift moves every pixel of a
     # frame alike. A floor only: under turbulence the error is also correlated across frames,
     # which this misses (roll-off pull std 1.26–1.35 with it); the block jackknife below counts it
-    cov, chi2, singular, _ = covariance(_flat_modulator_residuals, flat, (unravel, args), dof, clusters=r.shape[0])
-    sig = unravel(jnp.asarray(np.sqrt(np.maximum(np.diag(cov), 0))))
+    cov, chi2, singular = covariance(modulator_fit_moments, flat, args, dof, clusters=r.shape[0])
+    sig = dict(zip(FREE_PARAMETERS, np.sqrt(np.maximum(np.diag(cov), 0))))
     if jackknife_blocks:
         spread = block_jackknife_sigma(val, args, jackknife_blocks)
-        sig = {k: jnp.maximum(sig[k], spread[k]) for k in sig}
-    x0_fit, x0_sig = float(jnp.exp(val["log_x0"])), float(jnp.exp(val["log_x0"]) * sig["log_x0"])
+        sig = {k: max(sig[k], spread[k]) for k in sig}
+    x0_fit = math.exp(val["log_x0"])
+    x0_sig = x0_fit * float(sig["log_x0"])
     beta = Estimate(2 * x0_fit, 2 * x0_sig)
     if not converged or singular or not x0_sig < 0.1 * x0_fit:
         beta = Estimate(
@@ -173,8 +185,12 @@ EXACT_DEPTH_STEPS = 6
 EXACT_DEPTH_MAX_STEP_MM = 0.1
 
 
-@jax.jit
-def _exact_model_depths(f, r, depth_m, delay_offset_s, weights):
+@async_filter_jit
+def exact_model_depths_program(f, r, depth_m, delay_offset_s, modulator: MZM):
+    """`exact_model_depths_m` as one compiled program, kept on disk (the modulator's values
+    and the delay offset are its inputs: `modulator_inputs`)."""
+    weights = modulator.weights(f)
+
     def cost(offset_mm, r_p, depth_p):
         cycles = f * (delay_offset_s + 2 * (depth_p + 1e-3 * offset_mm) / C)
         s = beat_spectrum(2 * jnp.pi * (cycles - jnp.floor(cycles)), weights)
@@ -206,9 +222,11 @@ def exact_model_depths_m(frequencies_hz, r: np.ndarray, depth_m: np.ndarray, mod
     ±15 µm (depending on depth; measured noiseless at 3000 frames with an 8 GHz roll-off). Per
     pixel that is a tenth of σ, but τ_sys averages hundreds of pixels: the mean moved 0.3σ.
     `delay_offset_s`: the delay the depths do not include (the described τ_sys)."""
-    f = jnp.asarray(frequencies_hz, jnp.float64)
-    weights = modulator.weights(f).astype(jnp.float64)
-    out = _exact_model_depths(
-        f, jnp.asarray(r, jnp.float64), jnp.asarray(depth_m, jnp.float64), float(delay_offset_s), weights
+    out = exact_model_depths_program(
+        np.asarray(frequencies_hz, np.float64),
+        np.asarray(r, np.float64),
+        np.asarray(depth_m, np.float64),
+        np.asarray(delay_offset_s, np.float64),
+        modulator_inputs(modulator),
     )
     return np.asarray(out)

@@ -73,8 +73,7 @@ def reconstruct_array(
         alignment = CarrierAlignment("common", "given by the caller", np.asarray(carrier_phase_rad, np.float64))
     else:
         alignment = align_carrier(options, instrument, frames.reshape(4, n, h * w), dark, gain)
-    plan = build_plan(instrument, options, saturation_dn, tracking=alignment.tracking)
-    dispatcher = TileDispatcher(plan, sub_tile_pixels(h * w, n), alignment.phase_rad)
+    _, dispatcher = plan_and_dispatcher(instrument, options, saturation_dn, alignment, sub_tile_pixels(h * w, n))
     with quick_compile(h * w <= QUICK_COMPILE_MAX_PIXELS):
         out = dispatcher.dispatch(frames.reshape(4, n, h * w), dark, None, gain).gather()
     return {k: v.reshape(h, w) for k, v in out.items()}
@@ -116,6 +115,12 @@ def depth_meta(plan: TilePlan, options: ReconstructOptions, alignment: CarrierAl
 # builds its plan and places it on the devices once, not once per capture
 _SETUPS: dict = {}
 MAX_SETUPS = 4
+
+
+def forget_setups() -> None:
+    """Drop the plans and dispatchers kept for later captures (`plan_and_dispatcher`): the
+    next capture builds its own, after a change to a module-level setting `build_plan` reads."""
+    _SETUPS.clear()
 
 
 def plan_and_dispatcher(instrument, options, saturation, alignment, sub_px):
