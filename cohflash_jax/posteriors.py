@@ -91,7 +91,7 @@ def run_pixels(
     results = []
     for p in progress_bar(usable, unit="px", desc="posterior", disable=not progress):
         r, c = pixels[p]
-        d = jax.tree_util.tree_map(lambda x, p=p: x[p], data)
+        d = jax.tree.map(lambda x, p=p: x[p], data)
         backend = None if chains_path is None else emcee.backends.HDFBackend(str(chains_path), name=f"pixel_{r}_{c}")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # emcee's autocorrelation on short chains

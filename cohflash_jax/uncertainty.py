@@ -33,6 +33,7 @@ from .estimate.coarse import unitary_rfft
 from .estimate.iq import align_carrier_static, derotate, iq_from_frames
 from .estimate.window_model import UniformModel, bin_weights, window_tables
 from .reconstruct import TilePlan, process_tile, program_plan
+from .runtime import async_filter_jit
 from .status import Status
 
 PARAMETERS = ("depth_offset_mm", "amplitude", "carrier_phase_rad")
@@ -54,14 +55,18 @@ class PixelData(eqx.Module):
 
 def pixel_data(plan: TilePlan, frames, window_bins: int, dark=None, gain=None) -> PixelData:
     """ML results and the DFT windows (`window_bins` wide) of r and q for pixels (4, N, P),
-    with their per-pixel offsets and gains (4, P) where given → PixelData (leading P). The
-    plan goes in as the programs take it (`program_plan`): another calibration's τ_sys or
-    another threshold runs the program already compiled."""
-    return _pixel_data(program_plan(plan), frames, window_bins, dark, gain)
+    with their per-pixel offsets and gains (4, P) where given → PixelData (leading P), in
+    NumPy (a pixel is then taken out without a compiled indexing operation). The plan goes in
+    as the programs take it (`program_plan`): another calibration's τ_sys or another
+    threshold runs the program already compiled."""
+    fields = _pixel_data(program_plan(plan), frames, window_bins, dark, gain)
+    return PixelData(*(np.asarray(x) for x in fields))
 
 
-@eqx.filter_jit
-def _pixel_data(plan: TilePlan, frames, window_bins: int, dark=None, gain=None) -> PixelData:
+@async_filter_jit
+def _pixel_data(plan: TilePlan, frames, window_bins: int, dark=None, gain=None) -> tuple:
+    """`pixel_data`'s fields, in one compiled program kept on disk (a warm process neither
+    traces nor lowers the reconstruction inside it)."""
     out = process_tile(plan, frames, dark, None, gain)
     n = frames.shape[1]
     i, q = iq_from_frames(frames.astype(jnp.float32), plan.iq.weights, plan.iq.bias, dark, gain)
@@ -77,14 +82,22 @@ def _pixel_data(plan: TilePlan, frames, window_bins: int, dark=None, gain=None) 
     k0 = jnp.clip(peak - w // 2, 0, k_count - w)
     take = lambda s: jnp.take_along_axis(s, k0[:, None] + jnp.arange(w), axis=-1).astype(jnp.complex128)
     noise_var = jnp.var(qr, axis=0).astype(jnp.float64)
-    return PixelData(
-        take(spec_r), take(spec_q), k0, out["depth_m"], out["amplitude"], noise_var, out["sigma_m"], out["fit_status"]
+    return (
+        take(spec_r),
+        take(spec_q),
+        k0,
+        out["depth_m"],
+        out["amplitude"],
+        noise_var,
+        out["sigma_m"],
+        out["fit_status"],
     )
 
 
-@eqx.filter_jit
+@async_filter_jit
 def _tone_table(model: UniformModel, k0, depths_m, width: int):
-    """The tone's window T(depth) (G, W) for unit amplitude, the DC column and bin weights."""
+    """The tone's window T(depth) (G, W) for unit amplitude, the DC column and bin weights
+    (one compiled program, kept on disk)."""
     tables = window_tables(k0, width, model.num_frames)
     tone = jax.vmap(lambda d: model.tone_column(d, tables))(depths_m)
     return tone, model.dc_column(tables), bin_weights(tables, model.num_frames)
@@ -153,7 +166,7 @@ def make_log_prob(
     half_mm = 1e3 * depth_half_range_m
     grid = np.arange(-half_mm, half_mm + 2 * step_mm, step_mm)
     table, dc, omega = _tone_table(
-        model, data.k0, data.ml_depth_m + 1e-3 * jnp.asarray(grid), int(data.r_window.shape[0])
+        model, np.asarray(data.k0), data.ml_depth_m + 1e-3 * grid, int(data.r_window.shape[0])
     )
     dots = _dot_tables(table, dc, omega, np.asarray(data.r_window), np.asarray(data.q_window))
     args = (
@@ -338,7 +351,7 @@ def sample_pixels(
             posts.append(
                 sample_pixel(
                     plan.model,
-                    jax.tree_util.tree_map(lambda x, p=p: x[p], data),
+                    jax.tree.map(lambda x, p=p: x[p], data),
                     ambiguity_m=plan.geometry.ambiguity_m,
                     bin_depth_m=plan.geometry.bin_depth_m,
                     ripple_m=plan.geometry.ripple_m,
