@@ -396,9 +396,9 @@ def designed_instrument(frames: int, schedule: str, problem_frames: int) -> tupl
         frame_rate_hz=ACQUISITION_RATE_HZ,
         max_frequency_hz=6e9,
         schedule=schedule,
-        max_frames=problem_frames,  # one compiled search for every frame count
+        max_frames=problem_frames,  # one compiled search for every power of 8 of frames (`frame_cap`)
     )
-    _, ev = solve_for_n(frames, frame_cap(problem), problem)
+    _, ev = solve_for_n(frames, frame_cap(problem, frames), problem)
     frequencies = np.asarray(ev.frequencies_hz, np.float64)
     return variables_instrument(ev.variables, frames, frequencies, ACQUISITION_RATE_HZ), float(ev.crlb_m)
 

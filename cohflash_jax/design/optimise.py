@@ -27,6 +27,7 @@ from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import SENSOR_NOISE, depth_crlb_m
 from ..instrument import Instrument
 from ..progress import progress_bar
+from ..runtime import async_filter_jit
 from .parameters import variables_instrument
 from .problem import DesignProblem, decode, schedule
 
@@ -85,7 +86,12 @@ def evaluate(z, n, n_cap: int, problem: DesignProblem) -> Evaluation:
     return Evaluation(locked, coarse, jnp.sum(f * mask) / n, jnp.max(steps), snr, v, f)
 
 
-evaluate_compiled = jax.jit(evaluate, static_argnames=("n_cap", "problem"))
+@async_filter_jit
+def evaluate_program(z, n, *, n_cap: int, problem: DesignProblem) -> tuple:
+    """`evaluate` compiled (one program per frame cap and problem, kept on disk): the
+    `Evaluation`'s fields in order."""
+    ev = evaluate(z, n, n_cap, problem)
+    return tuple(getattr(ev, field.name) for field in dataclasses.fields(ev))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -209,7 +215,6 @@ class DesignResult:
     note: str = ""
 
 
-_compiled_cache: dict = {}
 # Starts of the BFGS search (z, unconstrained): low and high in the band, small and large
 # index; the objective is not convex in the start frequency, where ripple margin and f̄ trade off
 _STARTS = (
@@ -236,31 +241,46 @@ def _on_host(ev: Evaluation, n: int) -> Evaluation:
     )
 
 
+@async_filter_jit
+def solve_starts(n, starts, *, n_cap: int, problem: DesignProblem):
+    """BFGS from each row of `starts` for N = n frames → (z, objective) per start: one compiled
+    program per frame cap, problem and number of starts, kept on disk."""
+
+    def solve(z_start):
+        solver = optx.BFGS(rtol=1e-7, atol=1e-9)
+        args = (n, n_cap, problem)
+        sol = optx.minimise(_objective, solver, z_start, args=args, max_steps=MAX_BFGS_STEPS, throw=False)
+        return sol.value, _objective(sol.value, args)
+
+    return jax.vmap(solve)(starts)
+
+
 def solve_for_n(n: int, n_cap: int, problem: DesignProblem, z0=None):
-    """The best design with n frames (several BFGS starts, and the warm start z0) → (z, Evaluation)."""
-    key = (n_cap, problem)
-    if key not in _compiled_cache:
-
-        def solve(nn, z_start):
-            solver = optx.BFGS(rtol=1e-7, atol=1e-9)
-            sol = optx.minimise(
-                _objective, solver, z_start, args=(nn, n_cap, problem), max_steps=MAX_BFGS_STEPS, throw=False
-            )
-            return sol.value, _objective(sol.value, (nn, n_cap, problem))
-
-        _compiled_cache[key] = jax.jit(jax.vmap(solve, in_axes=(None, 0)))
-    starts = [list(s) for s in _STARTS]
-    if z0 is not None:
-        starts.append(list(np.clip(np.asarray(z0), -6, 6)))
-    zs, values = _compiled_cache[key](jnp.asarray(n, jnp.int32), jnp.asarray(starts, jnp.float64))
-    values = jnp.where(jnp.isfinite(values), values, jnp.inf)
-    z = zs[int(jnp.argmin(values))]
-    return z, _on_host(evaluate_compiled(z, jnp.asarray(n, jnp.int32), n_cap=n_cap, problem=problem), n)
+    """The best design with n frames (several BFGS starts, and the warm start z0) → (z, Evaluation).
+    `n_cap` ≥ n: the frames the programs hold (`frame_cap`)."""
+    # without a warm start the first start runs twice: one program for either case
+    starts = [list(s) for s in _STARTS] + [list(_STARTS[0] if z0 is None else np.clip(np.asarray(z0), -6, 6))]
+    n_frames = np.asarray(n, np.int32)
+    zs, values = solve_starts(n_frames, np.asarray(starts, np.float64), n_cap=n_cap, problem=problem)
+    values = np.asarray(values)
+    z = np.asarray(zs)[int(np.argmin(np.where(np.isfinite(values), values, np.inf)))]
+    return z, _on_host(Evaluation(*evaluate_program(z, n_frames, n_cap=n_cap, problem=problem)), n)
 
 
-def frame_cap(problem: DesignProblem) -> int:
-    """The compiled frame count: a power of two ≥ max_frames (frames beyond N are masked)."""
-    return 1 << int(math.ceil(math.log2(max(problem.max_frames, 8))))
+# The programs hold the frames in powers of this, from the second (frames beyond N masked):
+# a design's cost grows with the frames held, so a search among few frames runs programs of
+# few, at one program for every power visited
+FRAME_CAP_BASE = 8
+
+
+def frame_cap(problem: DesignProblem, n: int | None = None) -> int:
+    """The frames the compiled programs hold for N = n (default: the problem's most, its
+    `max_frames`): the smallest power of `FRAME_CAP_BASE` (≥ its square) at or above n, at
+    most the power of two at or above `max_frames`."""
+    most = 1 << int(math.ceil(math.log2(max(problem.max_frames, 8))))
+    if n is None:
+        return most
+    return min(most, FRAME_CAP_BASE ** max(2, math.ceil(math.log(max(n, 1), FRAME_CAP_BASE) - 1e-9)))
 
 
 def _result(n: int, ev: Evaluation, problem: DesignProblem, feasible: bool, note: str = "") -> DesignResult:
@@ -277,34 +297,48 @@ def _result(n: int, ev: Evaluation, problem: DesignProblem, feasible: bool, note
     )
 
 
+# The frame counts the search doubles from, and the count below it taken as too few
+FIRST_FRAMES = 8
+FEWEST_FRAMES = 4
+
+
 def optimise_design(problem: DesignProblem, progress: bool = True) -> DesignResult:
     """Shortest acquisition (fewest frames at the given frame rate) whose gradient-optimised
-    design meets the target precision; bisection over N with warm starts."""
-    n_cap = frame_cap(problem)
-    lo, hi = 4, problem.max_frames
-    z_hi, ev_hi = solve_for_n(hi, n_cap, problem)
-    if not meets(ev_hi, problem):
-        why = [f"best bound {ev_hi.crlb_m * 1e3:.3g} mm"] if ev_hi.crlb_m > problem.target_precision_m else []
-        why += [
-            c.infeasible(ev_hi, problem)
-            for c in CONSTRAINTS.values()
-            if c.hard is not None and c.quantity(ev_hi, problem) > c.hard and c.infeasible is not None
-        ]
-        return _result(
-            hi,
-            ev_hi,
-            problem,
-            False,
-            f"target {problem.target_precision_m * 1e3:g} mm not reachable within {hi} frames ("
-            + "; ".join(why)
-            + "): allow more frames, power or bandwidth",
-        )
-    best = (hi, z_hi, ev_hi)
-    steps = int(math.ceil(math.log2(hi - lo + 1)))
-    with progress_bar(total=steps, desc="design (bisection over N)", disable=not progress) as bar:
+    design meets the target precision: N doubled from `FIRST_FRAMES` until a design meets it
+    (a design's cost grows with the frames its programs hold, `frame_cap`, so the search
+    stays among few frames where the answer lies), then bisection between the last two, with
+    warm starts. Not met within `max_frames`: the best design there, and why."""
+    most = problem.max_frames
+    doublings = max(0, math.ceil(math.log2(max(most, 1) / FIRST_FRAMES))) + 1
+    lo, n, z = FEWEST_FRAMES, min(FIRST_FRAMES, most), None
+    with progress_bar(total=doublings, desc="design (frames doubled, then bisected)", disable=not progress) as bar:
+        while True:
+            z, ev = solve_for_n(n, frame_cap(problem, n), problem, z)
+            bar.update(1)
+            if meets(ev, problem) or n >= most:
+                break
+            lo, n = n, min(2 * n, most)
+        if not meets(ev, problem):
+            why = [f"best bound {ev.crlb_m * 1e3:.3g} mm"] if ev.crlb_m > problem.target_precision_m else []
+            why += [
+                c.infeasible(ev, problem)
+                for c in CONSTRAINTS.values()
+                if c.hard is not None and c.quantity(ev, problem) > c.hard and c.infeasible is not None
+            ]
+            return _result(
+                n,
+                ev,
+                problem,
+                False,
+                f"target {problem.target_precision_m * 1e3:g} mm not reachable within {n} frames ("
+                + "; ".join(why)
+                + "): allow more frames, power or bandwidth",
+            )
+        hi, best = n, (n, z, ev)
+        bar.total = bar.n + max(0, math.ceil(math.log2(max(hi - lo, 1))))
         while hi - lo > 1:
             mid = (lo + hi) // 2
-            z, ev = solve_for_n(mid, n_cap, problem, best[1])
+            z, ev = solve_for_n(mid, frame_cap(problem, mid), problem, best[1])
             if meets(ev, problem):
                 hi, best = mid, (mid, z, ev)
             else:

@@ -72,7 +72,7 @@ def design_report(
     ]
     if compare_warped and result.feasible:
         warped_problem = dataclasses.replace(problem, schedule="warped")
-        _, ev_w = solve_for_n(result.num_frames, frame_cap(problem), warped_problem)
+        _, ev_w = solve_for_n(result.num_frames, frame_cap(problem, result.num_frames), warped_problem)
         ok = meets(ev_w, problem)
         doc["warped"] = {
             "crlb_mm": ev_w.crlb_m * 1e3,
