@@ -44,7 +44,7 @@ def tone_sequences(frequencies_hz, delay_s: Float[Array, " P"], modulator: MZM) 
 def modulator_inputs(modulator: MZM) -> MZM:
     """`modulator` with its values as float64 arrays, so that a program taking it is compiled
     once for any value (a Python float would be compiled into it)."""
-    return jax.tree.map(lambda v: jnp.asarray(v, jnp.float64), modulator)
+    return jax.tree.map(lambda v: np.asarray(v, np.float64), modulator)
 
 
 @async_filter_jit
