@@ -306,8 +306,10 @@ def optimise_design(problem: DesignProblem, progress: bool = True) -> DesignResu
     """Shortest acquisition (fewest frames at the given frame rate) whose gradient-optimised
     design meets the target precision: N doubled from `FIRST_FRAMES` until a design meets it
     (a design's cost grows with the frames its programs hold, `frame_cap`, so the search
-    stays among few frames where the answer lies), then bisection between the last two, with
-    warm starts. Not met within `max_frames`: the best design there, and why."""
+    stays among few frames where the answer lies; once the programs would hold more than a
+    `FRAME_CAP_BASE`-th of `max_frames`' frames, straight to `max_frames`, so that a target
+    out of reach costs little more than one search there), then bisection between the last
+    two, with warm starts. Not met within `max_frames`: the best design there, and why."""
     most = problem.max_frames
     doublings = max(0, math.ceil(math.log2(max(most, 1) / FIRST_FRAMES))) + 1
     lo, n, z = FEWEST_FRAMES, min(FIRST_FRAMES, most), None
@@ -318,6 +320,8 @@ def optimise_design(problem: DesignProblem, progress: bool = True) -> DesignResu
             if meets(ev, problem) or n >= most:
                 break
             lo, n = n, min(2 * n, most)
+            if frame_cap(problem, n) * FRAME_CAP_BASE > frame_cap(problem, most):
+                n = most  # programs within a power of the most frames: straight to a search there
         if not meets(ev, problem):
             why = [f"best bound {ev.crlb_m * 1e3:.3g} mm"] if ev.crlb_m > problem.target_precision_m else []
             why += [
