@@ -41,16 +41,17 @@ LABELS = ("depth − ML (mm)", "amplitude A (DN)", "carrier phase δφ (rad)")
 
 
 class PixelData(eqx.Module):
-    """What the posterior of one pixel needs (float64; a leading pixel axis when batched)."""
+    """What the posterior of one pixel needs (float64; a leading pixel axis when batched;
+    NumPy arrays as `pixel_data` gives them)."""
 
-    r_window: jax.Array  # (W,) complex
-    q_window: jax.Array  # (W,) complex
-    k0: jax.Array
-    ml_depth_m: jax.Array
-    ml_amplitude: jax.Array
-    noise_var: jax.Array
-    crlb_m: jax.Array
-    status: jax.Array
+    r_window: np.ndarray  # (W,) complex
+    q_window: np.ndarray  # (W,) complex
+    k0: np.ndarray
+    ml_depth_m: np.ndarray
+    ml_amplitude: np.ndarray
+    noise_var: np.ndarray
+    crlb_m: np.ndarray
+    status: np.ndarray
 
 
 def pixel_data(plan: TilePlan, frames, window_bins: int, dark=None, gain=None) -> PixelData:

@@ -37,7 +37,7 @@ def tone_sequences(frequencies_hz, delay_s: Float[Array, " P"], modulator: MZM) 
     """S(2π f_m τ_p) with the modulator's (frequency-dependent) sideband weights, float64.
     One compiled program whatever the modulator's values (they are its inputs, not constants)."""
     return _tone_program(
-        jnp.asarray(frequencies_hz, jnp.float64), jnp.asarray(delay_s, jnp.float64), modulator_inputs(modulator)
+        np.asarray(frequencies_hz, np.float64), np.asarray(delay_s, np.float64), modulator_inputs(modulator)
     )
 
 
