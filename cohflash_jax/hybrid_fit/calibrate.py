@@ -180,7 +180,7 @@ def calibrate_hybrid(
         drift removed. A time-domain fit needs the uncentred I/Q where the hybrid (offsets
         included) is calibrated: a mean removed before derotation would wander after it, and
         pass for a roll-off; a calibrated hybrid cancels the common mode, so no leakage."""
-        source = frames + port_means[:, None] if uncentred else data
+        source = frames + port_means[:, None] if uncentred else frames  # host arrays both: one program
         r, noise_var = carrier_aligned_sequences(source, *hyb.iq_matrix_dn(1.0), np.asarray(carrier, np.float64))
         return np.asarray(r), np.asarray(noise_var)
 
