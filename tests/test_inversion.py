@@ -806,3 +806,36 @@ def test_frame_extremes_equal_the_highest_and_lowest_frame(num_frames):
         high, low = jax.jit(frame_extremes)(jnp.asarray(frames))
         np.testing.assert_array_equal(np.asarray(high), frames.max(axis=1))
         np.testing.assert_array_equal(np.asarray(low), frames.min(axis=1))
+
+
+def _dot_precisions(jaxpr):
+    """The (operand dtype, precision) of every matrix product in a jaxpr and its sub-jaxprs."""
+    found = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "dot_general":
+            found.append((str(eqn.invars[0].aval.dtype), eqn.params["precision"]))
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (tuple, list)) else (value,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    found += _dot_precisions(inner)
+    return found
+
+
+@pytest.mark.parametrize("method,frames", [("ml", 35), ("ml", 600), ("dft", 3000)])
+def test_every_matrix_product_of_the_programs_runs_at_full_float32_precision(method, frames):
+    """A GPU's default float32 product is TF32 (a 10-bit mantissa): measured on an H200, the
+    short-sweep DFT window (a float32 product) then left noiseless targets a reduced χ² above 5
+    (poor_fit). A CPU computes full precision whatever is asked, so this reads what each
+    program asks for: every product in the traced programs of a tile at HIGHEST."""
+    from cohflash_jax.reconstruct import programs
+    from cohflash_jax.reconstruct.plan import build_plan
+
+    inst = cf.Instrument.ten_hz_mode() if frames == 35 else cf.Instrument.paper(num_steps=frames)
+    plan = build_plan(inst, ReconstructOptions(method=method, progress=False), None, tracking=False)
+    tile = jnp.zeros((4, frames, 64), jnp.uint16)
+    jaxpr = jax.make_jaxpr(lambda f: programs.process_tile(plan, f, jnp.zeros((4, 64), jnp.float32)))(tile)
+    products = _dot_precisions(jaxpr.jaxpr)
+    assert products, "no matrix product found: the walk missed the programs"
+    highest = (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST)
+    assert all(precision == highest for _, precision in products), products

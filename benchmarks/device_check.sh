@@ -1,0 +1,53 @@
+#!/usr/bin/env bash
+# One prepared run on a lent GPU machine (issue #21, item 5): the whole-process figures, the
+# 10 Hz mode in memory and from files, where a GPU process's time goes, and the GPU-relevant
+# tests. Each step has its own time limit, so one that hangs costs only its share; the log is
+# also written to $OUT/device_check.log. Run from the repository root, with the image's own
+# JAX (no install: the package runs from the checkout through PYTHONPATH).
+#
+#     bash benchmarks/device_check.sh
+set -u
+export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+OUT=${OUT:-/tmp/cohflash-device-out}
+work=/tmp/cohflash-device
+mkdir -p "$OUT" "$work"
+exec > >(tee "$OUT/device_check.log") 2>&1
+py=${PYTHON:-python3}
+cli=("$py" -m cohflash_jax.cli)
+step() { echo; echo "== $(date +%T) $*"; }
+timed() {  # timed LIMIT_S COMMAND…: the command's wall seconds, or why it stopped
+    local t0=$SECONDS
+    timeout "$1" "${@:2}"
+    echo "   [rc $? after $((SECONDS - t0)) s]"
+}
+
+step machine
+nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm --format=csv
+"$py" -c "import jax, jaxlib, equinox, optimistix, h5py, numpy; print('jax', jax.__version__, 'jaxlib', jaxlib.__version__, 'equinox', equinox.__version__, 'numpy', numpy.__version__, jax.devices())"
+"$py" -c "from cohflash_jax.runtime import cpu_description; print(cpu_description())"
+
+step "simulate traffic (full size, default effects), whole process"
+timed 150 "${cli[@]}" simulate traffic --out "$work/traffic.h5" --quiet
+
+step "whole processes beside the read floor and the NumPy script (ml, 2 interleaved rounds)"
+timed 240 "$py" benchmarks/bench_process.py --capture "$work/traffic.h5" --rounds 2 --methods ml
+
+step "in one process: full capture dft/ml, references, the 10 Hz mode in memory"
+timed 150 "$py" benchmarks/bench_reconstruct.py --capture "$work/traffic.h5" --repeats 1
+
+step "cohflash stream: eight 35-frame full-frame captures (the 10 Hz mode from files)"
+"${cli[@]}" simulate planar --steps 35 --effects shot_noise,read_noise,quantization,sidebands --quiet \
+    --set start_ghz=0.17142857,step_mhz=171.428571,exposure_ms=2,frame_rate_hz=350,probe_power_mw=158.6 \
+    --out "$work/ten_hz.h5"
+for k in 1 2 3 4 5 6 7 8; do cp "$work/ten_hz.h5" "$work/ten_hz_$k.h5"; done
+for method in ml dft; do
+    timed 60 "${cli[@]}" stream "$work"/ten_hz_?.h5 --out-dir "$work/stream-$method" --method "$method" --quiet
+done
+
+step "where a whole GPU process's time goes (warm cache, 1 round)"
+timed 150 "$py" benchmarks/bench_stages.py --capture "$work/traffic.h5" --rounds 1
+
+step "tests that exercise the reconstruction on the GPU"
+XLA_PYTHON_CLIENT_PREALLOCATE=false timed 150 "$py" -m pytest -q -x -p no:cacheprovider -n 4 \
+    tests/test_inversion.py tests/test_detection.py tests/test_honest_sigma.py
+step done
