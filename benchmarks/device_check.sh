@@ -48,6 +48,6 @@ step "where a whole GPU process's time goes (warm cache, 1 round)"
 timed 150 "$py" benchmarks/bench_stages.py --capture "$work/traffic.h5" --rounds 1
 
 step "tests that exercise the reconstruction on the GPU"
-XLA_PYTHON_CLIENT_PREALLOCATE=false timed 150 "$py" -m pytest -q -x -p no:cacheprovider -n 4 \
+XLA_PYTHON_CLIENT_PREALLOCATE=false timed 150 "$py" -m pytest -q -p no:cacheprovider -n 4 \
     tests/test_inversion.py tests/test_detection.py tests/test_honest_sigma.py
 step done
