@@ -10,9 +10,17 @@ float64 is enabled on import: the tone phase 2π·f·τ needs it (see `simulate`
 stage then picks float32 or float64 explicitly.
 """
 
+import sys as _sys
+
 import jax as _jax
 
 _jax.config.update("jax_enable_x64", True)
+
+# a `cohflash reconstruct` (or `stream`) process: its last run's programs load in a thread
+# while the imports below run
+from .runtime import prefetch_for_cli as _prefetch_for_cli  # noqa: E402
+
+_prefetch_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 
 from .calibration_file import Calibration, PixelMaps  # noqa: E402
 from .capture import Capture, CaptureError, write_capture  # noqa: E402

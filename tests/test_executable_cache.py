@@ -268,3 +268,67 @@ def test_a_program_calling_lapack_loads_into_a_fresh_process(tmp_path):
         results.append(json.loads(done.stdout.strip().splitlines()[-1]))
     first, second = results
     assert first["compiled"] >= 1 and second == {**first, "loaded": first["compiled"], "compiled": 0}
+
+
+PREFETCHED_RUN = textwrap.dedent(
+    """
+    import json, sys
+    # as `python -m cohflash_jax.cli reconstruct …` starts: the package's import sees the command
+    sys.orig_argv = [sys.executable, "-m", "cohflash_jax.cli", "reconstruct"]
+    import cohflash_jax
+    from cohflash_jax.runtime import EXECUTABLES
+    started = len(EXECUTABLES.prefetched)
+    from cohflash_jax.cli import main
+    assert main(["reconstruct", sys.argv[1], "--out", sys.argv[2], "--quiet"]) == 0
+    print(json.dumps({"started": started, "used": EXECUTABLES.prefetched_used,
+                      "loaded": EXECUTABLES.loaded, "compiled": EXECUTABLES.compiled}))
+    """
+)
+
+
+def test_a_reconstruct_process_loads_its_last_runs_programs_while_it_imports(tmp_path):
+    """`cohflash reconstruct` notes the entries it used; the next run's import of the package
+    starts loading them in a thread, and the run takes them instead of loading them again:
+    the same depth file. An entry damaged in between is compiled afresh, the rest still taken."""
+    import h5py
+
+    from cohflash_jax.cli import main
+    from cohflash_jax.runtime import cli_command
+
+    capture = tmp_path / "c.h5"
+    assert main(["simulate", "planar", "--size", "4x4", "--steps", "128", "--out", str(capture), "--quiet"]) == 0
+    cache = tmp_path / "cache"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "COHFLASH_JAX_CACHE": str(cache)}
+
+    def run(k):
+        out = tmp_path / f"d{k}.h5"
+        done = subprocess.run(
+            [sys.executable, "-c", PREFETCHED_RUN, str(capture), str(out)],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=300,
+        )
+        assert done.returncode == 0, done.stderr[-2000:]
+        with h5py.File(out) as f:
+            return json.loads(done.stdout.strip().splitlines()[-1]), f["depth_m"][()], f["fit_status"][()]
+
+    first, depth, status = run(1)
+    assert first["started"] == 0 and first["compiled"] >= 3
+    names = (cache / "executables" / "recent-reconstruct.txt").read_text().split()
+    assert len(names) == first["compiled"] and all((cache / "executables" / n).exists() for n in names)
+    second, depth2, status2 = run(2)
+    assert second["started"] == len(names) and second["used"] == len(names) == second["loaded"]
+    assert second["compiled"] == 0
+    np.testing.assert_array_equal(depth2, depth)
+    np.testing.assert_array_equal(status2, status)
+    (cache / "executables" / names[-1]).write_bytes(b"damaged")
+    third, depth3, _ = run(3)
+    assert third["used"] == len(names) - 1 and third["compiled"] == 1
+    np.testing.assert_array_equal(depth3, depth)
+
+    assert cli_command(["/usr/bin/python3", "/venv/bin/cohflash", "reconstruct", "c.h5"]) == "reconstruct"
+    assert cli_command(["python", "-X", "importtime", "-m", "cohflash_jax.cli", "stream", "a.h5"]) == "stream"
+    assert cli_command(["python", "/venv/bin/cohflash", "--version"]) is None
+    assert cli_command(["python", "-m", "pytest", "tests"]) is None
+    assert cli_command(["cohflash"]) is None

@@ -9,7 +9,14 @@ import sys
 from pathlib import Path
 
 from ..fileio import OutputSet
-from ..runtime import CLI_CPU_STREAMS, enable_compilation_cache, exit_process, use_cpu_streams
+from ..runtime import (
+    CLI_CPU_STREAMS,
+    EXECUTABLES,
+    PREFETCH_COMMANDS,
+    enable_compilation_cache,
+    exit_process,
+    use_cpu_streams,
+)
 from . import (
     calibrate,
     convert,
@@ -75,9 +82,13 @@ def main(argv=None) -> int:
     try:
         check_output_paths(args)
         if args.command in WRITES_AS_IT_GOES:
-            return args.func(args)
-        with OutputSet():  # every output of the command renamed into place together, at the end
-            return args.func(args)
+            code = args.func(args)
+        else:
+            with OutputSet():  # every output of the command renamed into place together, at the end
+                code = args.func(args)
+        if args.command in PREFETCH_COMMANDS:  # the next run loads these while it imports
+            EXECUTABLES.remember(args.command)
+        return code
     except BrokenPipeError:  # e.g. `cohflash scenes | head` (before OSError, of which it is one)
         sys.stderr.close()
         return 0
