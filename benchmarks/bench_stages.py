@@ -39,6 +39,8 @@ from cohflash_jax.runtime import cpu_description
 WHOLE = r"""
 import json, sys, time
 t0 = time.perf_counter()
+# as `cohflash reconstruct` starts: the package's import loads the last run's programs ahead
+sys.orig_argv = [sys.executable, "-m", "cohflash_jax.cli", "reconstruct"]
 import cohflash_jax.cli as cli
 t1 = time.perf_counter()
 import jax, jax.monitoring as mon
