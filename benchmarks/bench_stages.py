@@ -40,7 +40,7 @@ WHOLE = r"""
 import json, sys, time
 t0 = time.perf_counter()
 # as `cohflash reconstruct` starts: the package's import loads the last run's programs ahead
-sys.orig_argv = [sys.executable, "-m", "cohflash_jax.cli", "reconstruct"]
+sys.orig_argv = [sys.executable, "-m", "cohflash_jax.cli", "reconstruct", sys.argv[1]]
 import cohflash_jax.cli as cli
 t1 = time.perf_counter()
 import jax, jax.monitoring as mon

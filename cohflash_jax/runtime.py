@@ -288,24 +288,33 @@ class ExecutableCache:
         pool.shutdown(wait=False)  # its thread ends with the last load
         return True
 
-    def recent(self, command: str) -> list[str]:
-        """The entries the last `remember`ed run of `command` used."""
+    # bound of the notes of recent runs (`remember`): a few hundred
+    MAX_NOTE_BYTES = 64 * 2**10
+
+    def recent(self, command: str, input_bytes: int | None) -> list[str]:
+        """The entries the last `remember`ed run of `command` on an input of `input_bytes`
+        used (programs follow the capture's shape, which its size stands for)."""
+        if self.folder is None or input_bytes is None:
+            return []
         try:
-            return (self.folder / f"recent-{command}.txt").read_text().split()
-        except (OSError, TypeError):
+            return (self.folder / f"recent-{command}-{input_bytes}.txt").read_text().split()
+        except OSError:
             return []
 
-    def remember(self, command: str) -> None:
-        """Note the entries this process used as `command`'s most recent (`recent`)."""
-        if self.folder is None or not self.used:
+    def remember(self, command: str, input_bytes: int | None) -> None:
+        """Note the entries this process used as `command`'s most recent on an input of
+        `input_bytes` (`recent`)."""
+        if self.folder is None or input_bytes is None or not self.used:
             return
-        path = self.folder / f"recent-{command}.txt"
+        path = self.folder / f"recent-{command}-{input_bytes}.txt"
         temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         try:
             temporary.write_text("\n".join(self.used) + "\n")
             os.replace(temporary, path)
         except OSError:
             temporary.unlink(missing_ok=True)
+            return
+        bound_folder(self.folder, "recent-*.txt", self.MAX_NOTE_BYTES)
 
     def _checked(self, program, path: Path, recompile):
         """`program`, whose first call waits for its result: an entry that loads but cannot
@@ -563,10 +572,24 @@ def cli_command(argv) -> str | None:
     return None
 
 
+def cli_input_bytes(argv) -> int | None:
+    """The size of the largest existing file named on a command line: a `cohflash` run's
+    capture (the depth file it may overwrite, a calibration or a registration are smaller)."""
+    sizes = []
+    for arg in argv[1:]:
+        try:
+            if not arg.startswith("-") and os.path.isfile(arg):
+                sizes.append(os.path.getsize(arg))
+        except (OSError, ValueError):
+            continue
+    return max(sizes, default=None)
+
+
 def prefetch_for_cli(argv) -> bool:
     """Where this interpreter runs a `cohflash` command of `PREFETCH_COMMANDS` with the
     executable cache on: JAX's CPU devices and the cache set up as the CLI will, and the
-    entries that command's last run used loaded in a thread (`ExecutableCache.prefetch`).
+    entries that command's last run on an input of the same size used loaded in a thread
+    (`ExecutableCache.prefetch`).
     The package calls it on import, just after importing JAX: the rest of its imports and the
     command's start (~0.4 s) then hide most of the load (0.36 s for a full capture's
     programs). Returns whether a load started."""
@@ -577,7 +600,7 @@ def prefetch_for_cli(argv) -> bool:
         use_cpu_streams(CLI_CPU_STREAMS)
         if enable_compilation_cache() is None:
             return False
-        return EXECUTABLES.prefetch(EXECUTABLES.recent(command))
+        return EXECUTABLES.prefetch(EXECUTABLES.recent(command, cli_input_bytes(argv)))
     except Exception:
         return False
 

@@ -274,7 +274,7 @@ PREFETCHED_RUN = textwrap.dedent(
     """
     import json, sys
     # as `python -m cohflash_jax.cli reconstruct …` starts: the package's import sees the command
-    sys.orig_argv = [sys.executable, "-m", "cohflash_jax.cli", "reconstruct"]
+    sys.orig_argv = [sys.executable, "-m", "cohflash_jax.cli", "reconstruct", sys.argv[1], "--out", sys.argv[2]]
     import cohflash_jax
     from cohflash_jax.runtime import EXECUTABLES
     started = len(EXECUTABLES.prefetched)
@@ -293,7 +293,7 @@ def test_a_reconstruct_process_loads_its_last_runs_programs_while_it_imports(tmp
     import h5py
 
     from cohflash_jax.cli import main
-    from cohflash_jax.runtime import cli_command
+    from cohflash_jax.runtime import cli_command, cli_input_bytes
 
     capture = tmp_path / "c.h5"
     assert main(["simulate", "planar", "--size", "4x4", "--steps", "128", "--out", str(capture), "--quiet"]) == 0
@@ -315,7 +315,9 @@ def test_a_reconstruct_process_loads_its_last_runs_programs_while_it_imports(tmp
 
     first, depth, status = run(1)
     assert first["started"] == 0 and first["compiled"] >= 3
-    names = (cache / "executables" / "recent-reconstruct.txt").read_text().split()
+    notes = list((cache / "executables").glob("recent-reconstruct-*.txt"))
+    assert [p.name for p in notes] == [f"recent-reconstruct-{capture.stat().st_size}.txt"]
+    names = notes[0].read_text().split()
     assert len(names) == first["compiled"] and all((cache / "executables" / n).exists() for n in names)
     second, depth2, status2 = run(2)
     assert second["started"] == len(names) and second["used"] == len(names) == second["loaded"]
@@ -332,3 +334,7 @@ def test_a_reconstruct_process_loads_its_last_runs_programs_while_it_imports(tmp
     assert cli_command(["python", "/venv/bin/cohflash", "--version"]) is None
     assert cli_command(["python", "-m", "pytest", "tests"]) is None
     assert cli_command(["cohflash"]) is None
+    # the capture, not the (smaller) depth file it overwrites, decides which programs load
+    assert cli_input_bytes(["cohflash", "reconstruct", str(capture), "--out", str(tmp_path / "d1.h5")]) == (
+        capture.stat().st_size
+    )

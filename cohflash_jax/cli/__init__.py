@@ -13,6 +13,7 @@ from ..runtime import (
     CLI_CPU_STREAMS,
     EXECUTABLES,
     PREFETCH_COMMANDS,
+    cli_input_bytes,
     enable_compilation_cache,
     exit_process,
     use_cpu_streams,
@@ -87,7 +88,7 @@ def main(argv=None) -> int:
             with OutputSet():  # every output of the command renamed into place together, at the end
                 code = args.func(args)
         if args.command in PREFETCH_COMMANDS:  # the next run loads these while it imports
-            EXECUTABLES.remember(args.command)
+            EXECUTABLES.remember(args.command, cli_input_bytes(["cohflash", *(sys.argv[1:] if argv is None else argv)]))
         return code
     except BrokenPipeError:  # e.g. `cohflash scenes | head` (before OSError, of which it is one)
         sys.stderr.close()
