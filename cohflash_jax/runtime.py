@@ -307,14 +307,8 @@ class ExecutableCache:
         if self.folder is None or input_bytes is None or not self.used:
             return
         path = self.folder / f"recent-{command}-{input_bytes}.txt"
-        temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        try:
-            temporary.write_text("\n".join(self.used) + "\n")
-            os.replace(temporary, path)
-        except OSError:
-            temporary.unlink(missing_ok=True)
-            return
-        bound_folder(self.folder, "recent-*.txt", self.MAX_NOTE_BYTES)
+        if replace_file(path, ("\n".join(self.used) + "\n").encode()):
+            bound_folder(self.folder, "recent-*.txt", self.MAX_NOTE_BYTES)
 
     def _checked(self, program, path: Path, recompile):
         """`program`, whose first call waits for its result: an entry that loads but cannot
@@ -368,14 +362,8 @@ class ExecutableCache:
             blob = pickle.dumps(serialize(compiled))
         except Exception:  # not serialisable (closed-over constants, …): stays in this process
             return
-        temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        try:
-            temporary.write_bytes(blob)
-            os.replace(temporary, path)
-        except OSError:
-            temporary.unlink(missing_ok=True)
-            return
-        self.bound()
+        if replace_file(path, blob):
+            self.bound()
 
     def bound(self):
         bound_folder(self.folder, "*.exe", self.MAX_BYTES)
@@ -431,6 +419,19 @@ def entry_lock(path: Path, wait_s: float = ENTRY_LOCK_WAIT_S):
             except OSError:
                 pass
             os.close(fd)
+
+
+def replace_file(path: Path, data: bytes) -> bool:
+    """Write `data` to `path` whole or not at all (a temporary beside it, renamed over it), so
+    that processes sharing the cache never read half an entry. Returns whether it was written."""
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        temporary.write_bytes(data)
+        os.replace(temporary, path)
+    except OSError:
+        temporary.unlink(missing_ok=True)
+        return False
+    return True
 
 
 def bound_folder(folder: Path, pattern: str, max_bytes: int):
