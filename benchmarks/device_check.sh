@@ -36,9 +36,9 @@ step "in one process: full capture dft/ml, references, the 10 Hz mode in memory"
 timed 150 "$py" benchmarks/bench_reconstruct.py --capture "$work/traffic.h5" --repeats 1
 
 step "cohflash stream: eight 35-frame full-frame captures (the 10 Hz mode from files)"
-"${cli[@]}" simulate planar --steps 35 --effects shot_noise,read_noise,quantization,sidebands --quiet \
-    --set start_ghz=0.17142857,step_mhz=171.428571,exposure_ms=2,frame_rate_hz=350,probe_power_mw=158.6 \
-    --out "$work/ten_hz.h5"
+"$py" -c "import sys, cohflash_jax as cf; from cohflash_jax.simulate import simulate_to_file
+simulate_to_file(sys.argv[1], cf.planar(effects=('shot_noise', 'read_noise', 'quantization', 'sidebands')),
+                 cf.Instrument.ten_hz_mode(), 256, 320, progress=False)" "$work/ten_hz.h5"
 for k in 1 2 3 4 5 6 7 8; do cp "$work/ten_hz.h5" "$work/ten_hz_$k.h5"; done
 for method in ml dft; do
     timed 60 "${cli[@]}" stream "$work"/ten_hz_?.h5 --out-dir "$work/stream-$method" --method "$method" --quiet
