@@ -16,10 +16,13 @@ import jax as _jax
 
 _jax.config.update("jax_enable_x64", True)
 
-# a `cohflash reconstruct` (or `stream`) process: its last run's programs load in a thread
-# while the imports below run
+# a `cohflash` process: a GPU's memory taken on demand (set before JAX's backends start), and
+# for `reconstruct` (or `stream`) its last run's programs loaded in a thread while the imports
+# below run
+from .runtime import gpu_memory_on_demand_for_cli as _gpu_memory_on_demand_for_cli  # noqa: E402
 from .runtime import prefetch_for_cli as _prefetch_for_cli  # noqa: E402
 
+_gpu_memory_on_demand_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 _prefetch_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 
 from .calibration_file import Calibration, PixelMaps  # noqa: E402

@@ -586,6 +586,21 @@ def cli_input_bytes(argv) -> int | None:
     return max(sizes, default=None)
 
 
+def gpu_memory_on_demand_for_cli(argv) -> bool:
+    """Where this interpreter runs a `cohflash` command (`cli_command`), let a GPU's memory be
+    taken as the programs ask for it instead of JAX's default of three quarters of the card
+    reserved as its backend starts (`XLA_PYTHON_CLIENT_PREALLOCATE=false`, unless the user set
+    it). A command's programs need a few GB; on an H200, reserving ~105 GB made each warm
+    full-capture `cohflash reconstruct` 1.4 s slower, its reconstruction 2.4 s against 1.0 s
+    (docs/performance.md). A library user's
+    process, a test run or a Dask worker keeps JAX's setting. Called on import, before JAX's
+    backends start; returns whether the command's process takes memory on demand."""
+    if cli_command(argv) is None:
+        return False
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    return os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"].lower() in ("false", "0")
+
+
 def prefetch_for_cli(argv) -> bool:
     """Where this interpreter runs a `cohflash` command of `PREFETCH_COMMANDS` with the
     executable cache on: JAX's CPU devices and the cache set up as the CLI will, and the
