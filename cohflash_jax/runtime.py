@@ -592,8 +592,8 @@ def gpu_memory_on_demand_for_cli(argv) -> bool:
     reserved as its backend starts (`XLA_PYTHON_CLIENT_PREALLOCATE=false`, unless the user set
     it). A command's programs need a few GB; on an H200, reserving ~105 GB made each warm
     full-capture `cohflash reconstruct` 1.4 s slower, its reconstruction 2.4 s against 1.0 s
-    (docs/performance.md). A library user's
-    process, a test run or a Dask worker keeps JAX's setting. Called on import, before JAX's
+    (docs/performance.md). A library user's process or a test run keeps JAX's setting (local
+    Dask workers a command starts inherit the command's). Called on import, before JAX's
     backends start; returns whether the command's process takes memory on demand."""
     if cli_command(argv) is None:
         return False

@@ -43,7 +43,7 @@ LABELS = ("depth − ML (mm)", "amplitude A (DN)", "carrier phase δφ (rad)")
 class SnookerMove(emcee.moves.DESnookerMove):
     """emcee's differential-evolution snooker move (Ter Braak & Vrugt 2008), the same proposal
     drawn for all walkers of a sub-ensemble at once. emcee's own draws them walker by walker in
-    Python, a sixth of a pixel's sampling time (docs/performance.md). Each walker takes one
+    Python, a fifth of a pixel's sampling time (docs/performance.md). Each walker takes one
     walker of each complementary sub-ensemble in a random order: z, then z₁ and z₂; it moves
     along u = (x − z)/√|x − z| by γ·u·(z₁ − z₂), with the snooker's Metropolis factor
     ½(d − 1)·log(|x′ − z|/|x − z|). Its random draws differ from emcee's, not their law (tested)."""
