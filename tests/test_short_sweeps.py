@@ -314,3 +314,54 @@ def test_short_sweep_spectrum_from_the_dft_matrix_matches_numpy(num_frames):
     np.testing.assert_allclose(np.asarray(out.spectrum), spec, atol=2e-6 * np.abs(spec).max())
     assert np.all(np.abs(np.asarray(out.power) - power) <= 2e-6 * scale)  # each pixel to its peak's power
     np.testing.assert_array_equal(np.asarray(out.peak), 1 + np.argmax(power[:, 1:], axis=1))
+
+
+def test_a_full_frame_sub_tile_fits_only_its_detected_pixels_where_they_are_few():
+    """The 10 Hz mode near its threshold: where at most an eighth of a full-frame sub-tile
+    (8192 px) holds a tone, the ML fit runs on those pixels alone (`estimate_detected`). They
+    get the same depths, σ, amplitudes and flags as fitting every pixel; the others report the
+    coarse stage's depth and no χ² (their status is not_detected either way). A sub-tile where
+    most pixels hold a tone is fitted whole, to the same bits."""
+    from cohflash_jax.estimate.base import DETECTED_FEW_SHARE, DETECTED_ONLY_MIN_PIXELS, estimate_detected
+    from cohflash_jax.reconstruct import programs
+
+    inst = cf.Instrument.ten_hz_mode()
+    plan = build_plan(inst, ReconstructOptions(progress=False))
+    rows, cols = 64, 128  # as a full frame's 8192-px sub-tile in memory
+    assert rows * cols >= DETECTED_ONLY_MIN_PIXELS
+    lit = np.zeros((rows, cols))
+    lit[::4, ::4] = 1.0  # one pixel in 16 holds a tone, the rest see nothing
+    noise = ("shot_noise", "read_noise")
+
+    def fits(reflectance, power=1.0):
+        scene = cf.from_arrays(np.full((rows, cols), 30.5), reflectance, effects=noise)
+        link = cf.LinkBudget(probe_power_w=power * inst.link.probe_power_w)
+        frames = cf.simulate(scene, cf.Instrument.ten_hz_mode(link=link), rows, cols, jax.random.key(2))
+        frames = np.asarray(frames).reshape(4, 35, rows * cols)
+        i, q, (c, s, noise_var, total_var), flags = programs.iq_and_carrier_axis(
+            plan.iq, frames, np.zeros((4, rows * cols), np.float32)
+        )
+        r = programs.rotate_program(i, q, c, s)
+
+        def both(r, noise_var, total_var):
+            coarse = plan.coarse(r)
+            ratio = plan.coarse.detection.ratio(plan.coarse.detection_energy(coarse), 35 * total_var)
+            detected = plan.coarse.detection.detected(ratio)
+            whole = plan.estimator.estimate(plan.coarse, coarse, r, noise_var)
+            alone = estimate_detected(plan.estimator, plan.coarse, coarse, r, noise_var, detected)
+            return detected, plan.coarse.depth(coarse, interpolate=True), whole, alone
+
+        return jax.tree.map(np.asarray, jax.jit(both)(r, noise_var, total_var))
+
+    detected, coarse_depth, whole, alone = fits(lit)
+    assert 0.5 * lit.mean() < detected.mean() <= 1 / DETECTED_FEW_SHARE
+    for name in ("depth_m", "sigma_m", "amplitude", "coarse_depth_m", "converged", "fit_ok"):
+        np.testing.assert_array_equal(getattr(alone, name)[detected], getattr(whole, name)[detected], err_msg=name)
+    np.testing.assert_allclose(alone.fit_chi2[detected], whole.fit_chi2[detected], rtol=1e-12)
+    np.testing.assert_array_equal(alone.depth_m[~detected], coarse_depth[~detected])
+    assert np.all(alone.fit_chi2[~detected] == -1) and np.all(np.isfinite(alone.sigma_m))
+
+    detected, _, whole, alone = fits(np.ones((rows, cols)), power=30.0)
+    assert detected.mean() > 0.9
+    for a, b in zip(jax.tree.leaves(alone), jax.tree.leaves(whole)):
+        np.testing.assert_array_equal(a, b)

@@ -131,6 +131,10 @@ class AbstractDepthEstimator(eqx.Module):
 
     refines: ClassVar[bool] = False
     edge_bins: ClassVar[float] = 0.0
+    # fit only the pixels where the detection test found a tone (`estimate_detected`): where
+    # the fit is most of a short sweep's cost, and a pixel with no tone is flagged not_detected
+    # whatever the fit says
+    detected_only: ClassVar[bool] = False
 
     @property
     def description(self) -> str:
@@ -147,3 +151,61 @@ class AbstractDepthEstimator(eqx.Module):
         """Depth of each pixel: `stage` the coarse stage (`estimate.coarse`), `coarse` its
         result for these pixels, `sequence` the carrier-aligned real sequences, `noise_var`
         the per-pixel noise variance measured in the quadrature channel."""
+
+
+# `estimate_detected` fits the detected pixels alone where they are at most this share of a
+# batch of at least this many pixels (the 10 Hz mode's full-frame sub-tiles: 2560 px read from a
+# file, 8192 px in memory); a smaller batch (a region of interest, a test's capture) runs the
+# plain fit and compiles it once, not twice
+DETECTED_FEW_SHARE = 8
+DETECTED_ONLY_MIN_PIXELS = 2048
+
+
+def estimate_detected(
+    estimator: AbstractDepthEstimator, stage, coarse, sequence: Float[Array, "N P"], noise_var, detected
+) -> DepthEstimate:
+    """`estimator.estimate`, fitting the detected pixels alone where they are at most an
+    eighth of a batch of `DETECTED_ONLY_MIN_PIXELS` or more (else every pixel, as `estimate`
+    does); the others then take the coarse stage's answer: its interpolated depth, tone
+    amplitude and frequency-only σ, no χ² (−1). Their status is not_detected whatever a fit
+    would say (`policy.classify`), so their fit need not run: where few pixels hold a tone (a
+    short sweep near its threshold) the fit costs an eighth. A pixel's fit depends on its own
+    data only, not on its batch. Both ways are in the program; it takes one."""
+    p = sequence.shape[1]
+    group = max(1, -(-p // DETECTED_FEW_SHARE))
+
+    def fit(idx):
+        picked = jax.tree.map(lambda a: a[idx], coarse)  # every field of the coarse result leads with pixels
+        return estimator.estimate(stage, picked, sequence[:, idx], noise_var[idx])
+
+    def few():
+        # `p` marks an empty slot: its fit runs on a clamped index, its writes are dropped
+        slots = jnp.nonzero(detected, size=group, fill_value=p)[0]
+        fitted = fit(jnp.minimum(slots, p - 1))
+        coarse_depth = stage.depth(coarse, interpolate=True)
+        amplitude = stage.tone_amplitude(coarse)
+        coarse_answer = {
+            "depth_m": coarse_depth,
+            "amplitude": amplitude,
+            "sigma_m": stage.frequency_only_sigma(amplitude, noise_var),
+            "coarse_depth_m": coarse_depth,
+            "converged": True,
+            "fit_ok": True,
+            "fit_chi2": -1.0,
+            "ambiguous": False,
+        }
+        whole = lambda name, part: jnp.broadcast_to(coarse_answer[name], (p,)).astype(part.dtype)
+        return DepthEstimate(
+            **{
+                field.name: None
+                if getattr(fitted, field.name) is None
+                else whole(field.name, getattr(fitted, field.name))
+                .at[slots]
+                .set(getattr(fitted, field.name), mode="drop")
+                for field in dataclasses.fields(DepthEstimate)
+            }
+        )
+
+    if p < DETECTED_ONLY_MIN_PIXELS:
+        return estimator.estimate(stage, coarse, sequence, noise_var)
+    return jax.lax.cond(jnp.sum(detected) <= group, few, lambda: estimator.estimate(stage, coarse, sequence, noise_var))

@@ -278,6 +278,7 @@ class TableML(AbstractDepthEstimator):
     Newton's polish on the Taylor polynomial, the exact final fit (`refine_ml_table`)."""
 
     refines: ClassVar[bool] = True
+    detected_only: ClassVar[bool] = True
 
     @property
     def description(self) -> str:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from ..estimate.base import estimate_detected
 from ..estimate.iq import carrier_axis, derotate, iq_from_frames, rotate_onto_axis, track_carrier_drift
 from ..fisher import reported_sigma_m
 from ..runtime import async_filter_jit
@@ -132,7 +133,11 @@ def invert_sequence(plan: TilePlan, r, noise_var, total_var, flags, data_status=
     n = r.shape[0]
     coarse = plan.coarse(r)
     detection_ratio = plan.coarse.detection.ratio(plan.coarse.detection_energy(coarse), n * total_var)
-    est = plan.estimator.estimate(plan.coarse, coarse, r, noise_var)
+    detected = plan.coarse.detection.detected(detection_ratio)
+    if plan.estimator.detected_only:
+        est = estimate_detected(plan.estimator, plan.coarse, coarse, r, noise_var, detected)
+    else:
+        est = plan.estimator.estimate(plan.coarse, coarse, r, noise_var)
     if plan.harmonics is not None:  # a starved fundamental: every order picks the unfolding
         est = plan.harmonics.resolve(est, r, noise_var)
     depth, coarse_depth = est.depth_m, est.coarse_depth_m
@@ -161,7 +166,7 @@ def invert_sequence(plan: TilePlan, r, noise_var, total_var, flags, data_status=
         dc_edge=dc_edge,
         converged=est.converged,
         fit_ok=est.fit_ok,
-        detected=plan.coarse.detection.detected(detection_ratio),
+        detected=detected,
         dead=dead,
         saturated=saturated,
         finite=finite,
