@@ -210,7 +210,9 @@ class UniformSpectrum(AbstractCoarseStage):
             power = hann_power(spec, n)
             return CoarseSpectrum(power, coarse_peak(power, self.min_bin), spec)
         k = n // 2 + 1
-        parts = jnp.asarray(unitary_dft_matrix(n), sequence.dtype) @ sequence  # (2K, P)
+        # at full float32 precision wherever it is called from (a GPU's default is TF32: its
+        # ~5e-4 relative error reaches the window fit; `runtime.MATMUL_PRECISION`)
+        parts = jnp.matmul(jnp.asarray(unitary_dft_matrix(n), sequence.dtype), sequence, precision="highest")  # (2K, P)
         spec = jax.lax.complex(parts[:k], parts[k:])  # (K, P)
         power = hann_power(spec, n, axis=0)
         return CoarseSpectrum(power.T, coarse_peak(power, self.min_bin, axis=0), spec.T)
