@@ -172,6 +172,8 @@ def estimate_detected(
     short sweep near its threshold) the fit costs an eighth. A pixel's fit depends on its own
     data only, not on its batch. Both ways are in the program; it takes one."""
     p = sequence.shape[1]
+    if p < DETECTED_ONLY_MIN_PIXELS:
+        return estimator.estimate(stage, coarse, sequence, noise_var)
     group = max(1, -(-p // DETECTED_FEW_SHARE))
 
     def fit(idx):
@@ -206,6 +208,4 @@ def estimate_detected(
             }
         )
 
-    if p < DETECTED_ONLY_MIN_PIXELS:
-        return estimator.estimate(stage, coarse, sequence, noise_var)
     return jax.lax.cond(jnp.sum(detected) <= group, few, lambda: estimator.estimate(stage, coarse, sequence, noise_var))

@@ -26,6 +26,7 @@ from jaxtyping import Array, Bool, Complex, Float, Int
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import crlb_frequency_only_m, frequency_only_sigma_m
 from ..geometry import POINTS_PER_ENVELOPE, SweepGeometry
+from ..runtime import MATMUL_PRECISION
 from .detection import Detection, delay_detection, uniform_detection, uniform_sums
 
 
@@ -210,9 +211,10 @@ class UniformSpectrum(AbstractCoarseStage):
             power = hann_power(spec, n)
             return CoarseSpectrum(power, coarse_peak(power, self.min_bin), spec)
         k = n // 2 + 1
-        # at full float32 precision wherever it is called from (a GPU's default is TF32: its
-        # ~5e-4 relative error reaches the window fit; `runtime.MATMUL_PRECISION`)
-        parts = jnp.matmul(jnp.asarray(unitary_dft_matrix(n), sequence.dtype), sequence, precision="highest")  # (2K, P)
+        # at the programs' full float32 precision wherever it is called from (a GPU's default is
+        # TF32: its ~5e-4 relative error reaches the window fit)
+        dft = jnp.asarray(unitary_dft_matrix(n), sequence.dtype)
+        parts = jnp.matmul(dft, sequence, precision=MATMUL_PRECISION)  # (2K, P)
         spec = jax.lax.complex(parts[:k], parts[k:])  # (K, P)
         power = hann_power(spec, n, axis=0)
         return CoarseSpectrum(power.T, coarse_peak(power, self.min_bin, axis=0), spec.T)
