@@ -2,6 +2,7 @@
 design's constraints and optimum against exhaustive search, resumable sweeps."""
 
 import csv
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -55,6 +56,39 @@ def test_crlb_scaling_laws():
     assert p4["crlb_mm"] / a["crlb_mm"] == pytest.approx(0.5, rel=1e-2)
     far = _crlb(bandwidth_ghz=3.0, **{**base, "distance_m": 61.0})  # 1/d² falloff: SNR/4
     assert far["crlb_mm"] / a["crlb_mm"] == pytest.approx(2.0, rel=2e-2)
+
+
+def test_a_new_target_power_or_frame_rate_runs_the_compiled_design_programs():
+    """The design programs take a problem's numbers as values (`DesignProblem.as_values`): a
+    user trying another target, power or frame rate waits for no compile, only the schedule and
+    the frames held make a program, and the answer is the new problem's."""
+    from cohflash_jax.runtime import EXECUTABLES
+
+    assert EXECUTABLES.folder is not None  # the tests' cache counts every program made
+    first = design.DesignProblem(target_precision_m=1e-3, max_range_m=38.0, max_frequency_hz=6e9, max_frames=64)
+    cap = design.frame_cap(first, 24)
+    _, ev_first = design.solve_for_n(24, cap, first)
+    made = (EXECUTABLES.loaded, EXECUTABLES.compiled)
+    second = dataclasses.replace(first, target_precision_m=0.5e-3, max_power_w=8e-3, frame_rate_hz=100.0)
+    _, ev_second = design.solve_for_n(24, cap, second)
+    assert (EXECUTABLES.loaded, EXECUTABLES.compiled) == made
+    assert ev_second.variables["probe_power_w"] <= second.max_power_w < ev_first.variables["probe_power_w"]
+    assert ev_second.variables["exposure_s"] <= 1 / second.frame_rate_hz
+    assert ev_second.crlb_m > ev_first.crlb_m  # half the power
+
+
+def test_carry_over_keeps_a_designs_start_and_step_at_other_frame_counts():
+    """The search's warm starts: the design of one frame count at another keeps its start
+    frequency, step and other variables (the same z would scale them to the frames)."""
+    from cohflash_jax.design.problem import carry_over, decode
+
+    problem = design.DesignProblem(target_precision_m=1e-3, max_range_m=38.0, max_frequency_hz=6e9, max_frames=256)
+    z = np.array([0.5, -0.3, 0.2, 0.1, 1.0, 2.0, 0.0])
+    was = decode(z, 100, problem)
+    for frames in (60, 100, 180):
+        now = decode(carry_over(z, 100, frames, problem), frames, problem)
+        for name in ("step_hz", "start_hz", "modulation_index", "bias_rad", "exposure_s", "probe_power_w"):
+            assert float(now[name]) == pytest.approx(float(was[name]), rel=1e-9), (frames, name)
 
 
 @pytest.fixture(scope="module")

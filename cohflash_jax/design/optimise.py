@@ -29,7 +29,7 @@ from ..instrument import Instrument
 from ..progress import progress_bar
 from ..runtime import async_filter_jit
 from .parameters import variables_instrument
-from .problem import DesignProblem, decode, schedule
+from .problem import DesignProblem, carry_over, decode, schedule
 
 # The ML fit ranks every likelihood ripple within ±1 DFT bin of the coarse estimate, so what
 # limits it is the likelihood itself: its ripple-to-ripple contrast grows with (ripple/σ_f)²,
@@ -88,8 +88,8 @@ def evaluate(z, n, n_cap: int, problem: DesignProblem) -> Evaluation:
 
 @async_filter_jit
 def evaluate_program(z, n, *, n_cap: int, problem: DesignProblem) -> tuple:
-    """`evaluate` compiled (one program per frame cap and problem, kept on disk): the
-    `Evaluation`'s fields in order."""
+    """`evaluate` compiled (one program per frame cap and schedule, kept on disk; `problem`
+    with its numbers as values): the `Evaluation`'s fields in order."""
     ev = evaluate(z, n, n_cap, problem)
     return tuple(getattr(ev, field.name) for field in dataclasses.fields(ev))
 
@@ -244,7 +244,8 @@ def _on_host(ev: Evaluation, n: int) -> Evaluation:
 @async_filter_jit
 def solve_starts(n, starts, *, n_cap: int, problem: DesignProblem):
     """BFGS from each row of `starts` for N = n frames → (z, objective) per start: one compiled
-    program per frame cap, problem and number of starts, kept on disk."""
+    program per frame cap, schedule and number of starts, kept on disk (`problem` with its
+    numbers as values: `DesignProblem.as_values`)."""
 
     def solve(z_start):
         solver = optx.BFGS(rtol=1e-7, atol=1e-9)
@@ -255,16 +256,30 @@ def solve_starts(n, starts, *, n_cap: int, problem: DesignProblem):
     return jax.vmap(solve)(starts)
 
 
-def solve_for_n(n: int, n_cap: int, problem: DesignProblem, z0=None):
-    """The best design with n frames (several BFGS starts, and the warm start z0) → (z, Evaluation).
+# warm starts a search takes beside `_STARTS` (fewer are padded: one program for any number)
+WARM_STARTS = 2
+
+
+def solve_for_n(n: int, n_cap: int, problem: DesignProblem, warm=()):
+    """The best design with n frames (several BFGS starts, and up to `WARM_STARTS` warm
+    starts `warm`; one that meets the problem before one that does not) → (z, Evaluation).
     `n_cap` ≥ n: the frames the programs hold (`frame_cap`)."""
-    # without a warm start the first start runs twice: one program for either case
-    starts = [list(s) for s in _STARTS] + [list(_STARTS[0] if z0 is None else np.clip(np.asarray(z0), -6, 6))]
+    warm = [np.clip(np.asarray(z, np.float64), -6, 6) for z in warm][:WARM_STARTS]
+    starts = [list(s) for s in _STARTS] + [list(z) for z in warm]
+    starts += [list(_STARTS[0])] * (len(_STARTS) + WARM_STARTS - len(starts))
     n_frames = np.asarray(n, np.int32)
-    zs, values = solve_starts(n_frames, np.asarray(starts, np.float64), n_cap=n_cap, problem=problem)
-    values = np.asarray(values)
-    z = np.asarray(zs)[int(np.argmin(np.where(np.isfinite(values), values, np.inf)))]
-    return z, _on_host(Evaluation(*evaluate_program(z, n_frames, n_cap=n_cap, problem=problem)), n)
+    values_of = problem.as_values()  # the programs take its numbers as values
+    zs, values = solve_starts(n_frames, np.asarray(starts, np.float64), n_cap=n_cap, problem=values_of)
+    # the lowest objective among the starts whose design meets the target and every hard
+    # constraint, else the lowest of all: the penalties are soft, so the lowest objective can
+    # lie just past a hard limit where another start found a design within it
+    values = np.where(np.isfinite(np.asarray(values)), np.asarray(values), np.inf)
+    found = []
+    for z, value in zip(np.asarray(zs), values):
+        ev = _on_host(Evaluation(*evaluate_program(z, n_frames, n_cap=n_cap, problem=values_of)), n)
+        found.append((not (np.isfinite(value) and meets(ev, problem)), value, z, ev))
+    _, _, z, ev = min(found, key=lambda candidate: candidate[:2])
+    return z, ev
 
 
 # The programs hold the frames in powers of this, from the second (frames beyond N masked):
@@ -312,13 +327,19 @@ def optimise_design(problem: DesignProblem, progress: bool = True) -> DesignResu
     two, with warm starts. Not met within `max_frames`: the best design there, and why."""
     most = problem.max_frames
     doublings = max(0, math.ceil(math.log2(max(most, 1) / FIRST_FRAMES))) + 1
-    lo, n, z = FEWEST_FRAMES, min(FIRST_FRAMES, most), None
+    lo, n = FEWEST_FRAMES, min(FIRST_FRAMES, most)
+    # warm starts, carried over to the frames searched (`carry_over`): the design of the most
+    # frames found short of the target (more frames keep it within the limits and improve it)
+    # and, once one met it, that of the fewest frames that did
+    below = None  # (frames, z)
+    carried = lambda found, frames: [] if found is None else [carry_over(found[1], found[0], frames, problem)]
     with progress_bar(total=doublings, desc="design (frames doubled, then bisected)", disable=not progress) as bar:
         while True:
-            z, ev = solve_for_n(n, frame_cap(problem, n), problem, z)
+            z, ev = solve_for_n(n, frame_cap(problem, n), problem, carried(below, n))
             bar.update(1)
             if meets(ev, problem) or n >= most:
                 break
+            below = (n, z)
             lo, n = n, min(2 * n, most)
             if frame_cap(problem, n) * FRAME_CAP_BASE > frame_cap(problem, most):
                 n = most  # programs within a power of the most frames: straight to a search there
@@ -342,11 +363,12 @@ def optimise_design(problem: DesignProblem, progress: bool = True) -> DesignResu
         bar.total = bar.n + max(0, math.ceil(math.log2(max(hi - lo, 1))))
         while hi - lo > 1:
             mid = (lo + hi) // 2
-            z, ev = solve_for_n(mid, frame_cap(problem, mid), problem, best[1])
+            warm = carried(best, mid) + carried(below, mid)
+            z, ev = solve_for_n(mid, frame_cap(problem, mid), problem, warm)
             if meets(ev, problem):
                 hi, best = mid, (mid, z, ev)
             else:
-                lo = mid
+                lo, below = mid, (mid, z)
             bar.update(1)
     n, _, ev = best
     return _result(n, ev, problem, True)

@@ -8,6 +8,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..radiometry import LinkBudget
@@ -57,6 +58,13 @@ class DesignProblem:
         )
         object.__setattr__(self, "_max_exposure_s", min(1.0 / self.frame_rate_hz, t_sat))
 
+    def as_values(self) -> DesignProblem:
+        """This problem with its numbers as 0-d float64 arrays: a compiled design program takes
+        them as values, not as part of what it was compiled for, so a new target, range,
+        power or frame rate runs the programs compiled already (one per schedule and frame
+        cap). Only the schedule and the most frames shape a program."""
+        return jax.tree.map(lambda value: np.asarray(value, np.float64), self)
+
     def max_step_hz(self, n):
         """Largest step: the unambiguous range, and the band's room for n frames (n may be traced)."""
         room = (self.max_frequency_hz - self.min_frequency_hz) / jnp.maximum(n - 1, 1)
@@ -92,6 +100,23 @@ def decode(z, n, problem: DesignProblem):
     }
 
 
+def carry_over(z, n_from: int, n_to: int, problem: DesignProblem) -> np.ndarray:
+    """z of a design of `n_from` frames → z of the design of `n_to` frames with the same start
+    frequency and step (where they fit the band and the range's largest step) and the same
+    other variables: a warm start that keeps the design, where the same z would not (`decode`
+    scales the step and start to the frames). Host-side."""
+    z = np.array(z, np.float64)
+    v = decode(z, n_from, problem)
+    step_max = float(problem.max_step_hz(n_to))
+    step = min(float(v["step_hz"]), step_max)
+    room = problem.max_frequency_hz - problem.min_frequency_hz - (n_to - 1) * step
+    share = (float(v["start_hz"]) - problem.min_frequency_hz) / room if room > 0 else 0.5
+    logit = lambda p: math.log(p / (1 - p))
+    z[0] = logit(min(max(step / step_max, 1e-3), 1 - 1e-3))
+    z[1] = logit(min(max(share, 1e-3), 1 - 1e-3))
+    return z
+
+
 def schedule(v, n, n_cap):
     """Frequencies (n_cap,) of which the first n are used: uniform (warp 1), or warped
     f = start + span·u^p over the same band (p < 1 crowds frames towards the top)."""
@@ -99,3 +124,28 @@ def schedule(v, n, n_cap):
     span = (n - 1) * v["step_hz"]
     u = jnp.clip(m / jnp.maximum(n - 1, 1), 0.0, 1.0)
     return v["start_hz"] + span * u ** v["warp"]
+
+
+# A `DesignProblem` is a pytree: its numbers are leaves (values a compiled program takes), its
+# schedule and most frames the structure (what a program is compiled for). Unflattening sets the
+# fields as they come, without `__post_init__`'s checks: inside a program they are traced.
+_PROBLEM_STRUCTURE = ("schedule", "max_frames")
+_PROBLEM_VALUES = tuple(f.name for f in dataclasses.fields(DesignProblem) if f.name not in _PROBLEM_STRUCTURE) + (
+    "_max_exposure_s",
+)
+
+
+def _flatten_problem(problem: DesignProblem):
+    return tuple(getattr(problem, name) for name in _PROBLEM_VALUES), tuple(
+        getattr(problem, name) for name in _PROBLEM_STRUCTURE
+    )
+
+
+def _unflatten_problem(structure, values) -> DesignProblem:
+    problem = object.__new__(DesignProblem)
+    for name, value in zip(_PROBLEM_STRUCTURE + _PROBLEM_VALUES, tuple(structure) + tuple(values)):
+        object.__setattr__(problem, name, value)
+    return problem
+
+
+jax.tree_util.register_pytree_node(DesignProblem, _flatten_problem, _unflatten_problem)
