@@ -336,7 +336,8 @@ class DelayPeriodogram(AbstractCoarseStage):
         g = self.depths_m.shape[0]
         basis = delay_basis(self.basis_outer, self.basis_inner, g)  # (2G, N): Re, then Im
         centred = (sequence - jnp.mean(sequence, axis=0)).astype(jnp.float32)
-        parts = basis @ centred  # (2G, P): one real product (a complex one would do twice the work)
+        # one real product (a complex one would do twice the work), at full float32 precision
+        parts = jnp.matmul(basis, centred, precision=MATMUL_PRECISION)  # (2G, P)
         power = (parts[:g] ** 2 + parts[g:] ** 2).T
         return CoarseSpectrum(power, first_argmax(power))
 

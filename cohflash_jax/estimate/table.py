@@ -31,6 +31,7 @@ from jaxtyping import Array, Float
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import depth_information, phase_locked_sigma_m, sigma_from_information, well_posed
+from ..runtime import MATMUL_PRECISION
 from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult, reduced_chi2
 from .coarse import first_argmax
 from .polish import STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA, polish_depth
@@ -180,7 +181,8 @@ def refine_ml_table(
     y = y64 - mean_r  # (N, P)
     # 1. basin search: one matrix product (float32 suffices to rank grid points), then the
     # grid points within ±half_width of the coarse depth: a window of at most `width` points
-    scores = table.unit_tones.T @ y.astype(jnp.float32)  # (G, P)
+    # at full float32 precision wherever it runs (a GPU's default, TF32, keeps 10 bits)
+    scores = jnp.matmul(table.unit_tones.T, y.astype(jnp.float32), precision=MATMUL_PRECISION)  # (G, P)
     g_count = table.num_points
     s = table.spacing_m
     lo = jnp.ceil((coarse_depth_m - half_width_m - table.start_m) / s).astype(jnp.int32)
