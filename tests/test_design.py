@@ -60,8 +60,9 @@ def test_crlb_scaling_laws():
 
 def test_a_new_target_power_or_frame_rate_runs_the_compiled_design_programs():
     """The design programs take a problem's numbers as values (`DesignProblem.as_values`): a
-    user trying another target, power or frame rate waits for no compile, only the schedule and
-    the frames held make a program, and the answer is the new problem's."""
+    user trying another target, power, frame rate or most frames waits for no compile (only the
+    schedule and the frames the programs hold make a program), and the answer is the new
+    problem's."""
     from cohflash_jax.runtime import EXECUTABLES
 
     assert EXECUTABLES.folder is not None  # the tests' cache counts every program made
@@ -69,7 +70,10 @@ def test_a_new_target_power_or_frame_rate_runs_the_compiled_design_programs():
     cap = design.frame_cap(first, 24)
     _, ev_first = design.solve_for_n(24, cap, first)
     made = (EXECUTABLES.loaded, EXECUTABLES.compiled)
-    second = dataclasses.replace(first, target_precision_m=0.5e-3, max_power_w=8e-3, frame_rate_hz=100.0)
+    second = dataclasses.replace(
+        first, target_precision_m=0.5e-3, max_power_w=8e-3, frame_rate_hz=100.0, max_frames=128
+    )
+    assert design.frame_cap(second, 24) == cap
     _, ev_second = design.solve_for_n(24, cap, second)
     assert (EXECUTABLES.loaded, EXECUTABLES.compiled) == made
     assert ev_second.variables["probe_power_w"] <= second.max_power_w < ev_first.variables["probe_power_w"]

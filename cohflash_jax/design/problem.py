@@ -61,8 +61,8 @@ class DesignProblem:
     def as_values(self) -> DesignProblem:
         """This problem with its numbers as 0-d float64 arrays: a compiled design program takes
         them as values, not as part of what it was compiled for, so a new target, range,
-        power or frame rate runs the programs compiled already (one per schedule and frame
-        cap). Only the schedule and the most frames shape a program."""
+        power, frame rate or most frames runs the programs compiled already (one per schedule
+        and frame cap). Only the schedule shapes a program."""
         return jax.tree.map(lambda value: np.asarray(value, np.float64), self)
 
     def max_step_hz(self, n):
@@ -127,9 +127,10 @@ def schedule(v, n, n_cap):
 
 
 # A `DesignProblem` is a pytree: its numbers are leaves (values a compiled program takes), its
-# schedule and most frames the structure (what a program is compiled for). Unflattening sets the
+# schedule the structure (what a program is compiled for; the frames it holds are an argument of
+# their own, `frame_cap`). Unflattening sets the
 # fields as they come, without `__post_init__`'s checks: inside a program they are traced.
-_PROBLEM_STRUCTURE = ("schedule", "max_frames")
+_PROBLEM_STRUCTURE = ("schedule",)
 _PROBLEM_VALUES = tuple(f.name for f in dataclasses.fields(DesignProblem) if f.name not in _PROBLEM_STRUCTURE) + (
     "_max_exposure_s",
 )
