@@ -128,8 +128,8 @@ def schedule(v, n, n_cap):
 
 # A `DesignProblem` is a pytree: its numbers are leaves (values a compiled program takes), its
 # schedule the structure (what a program is compiled for; the frames it holds are an argument of
-# their own, `frame_cap`). Unflattening sets the
-# fields as they come, without `__post_init__`'s checks: inside a program they are traced.
+# their own, `frame_cap`). Unflattening sets the fields as they come, without `__post_init__`'s
+# checks: inside a program they are traced.
 _PROBLEM_STRUCTURE = ("schedule",)
 _PROBLEM_VALUES = tuple(f.name for f in dataclasses.fields(DesignProblem) if f.name not in _PROBLEM_STRUCTURE) + (
     "_max_exposure_s",
