@@ -181,31 +181,18 @@ def estimate_detected(
         return estimator.estimate(stage, picked, sequence[:, idx], noise_var[idx])
 
     def few():
+        from .peak import peak_estimate  # the read-outs' answer; `peak` builds on this module
+
         # `p` marks an empty slot: its fit runs on a clamped index, its writes are dropped
         slots = jnp.nonzero(detected, size=group, fill_value=p)[0]
         fitted = fit(jnp.minimum(slots, p - 1))
-        coarse_depth = stage.depth(coarse, interpolate=True)
         amplitude = stage.tone_amplitude(coarse)
-        coarse_answer = {
-            "depth_m": coarse_depth,
-            "amplitude": amplitude,
-            "sigma_m": stage.frequency_only_sigma(amplitude, noise_var),
-            "coarse_depth_m": coarse_depth,
-            "converged": True,
-            "fit_ok": True,
-            "fit_chi2": -1.0,
-            "ambiguous": False,
-        }
-        whole = lambda name, part: jnp.broadcast_to(coarse_answer[name], (p,)).astype(part.dtype)
-        return DepthEstimate(
-            **{
-                field.name: None
-                if getattr(fitted, field.name) is None
-                else whole(field.name, getattr(fitted, field.name))
-                .at[slots]
-                .set(getattr(fitted, field.name), mode="drop")
-                for field in dataclasses.fields(DepthEstimate)
-            }
+        read_out = peak_estimate(
+            stage.depth(coarse, interpolate=True), stage.frequency_only_sigma(amplitude, noise_var), amplitude
         )
+        if fitted.ambiguous is not None:  # a read-out tests no rival depths
+            read_out = dataclasses.replace(read_out, ambiguous=jnp.zeros(p, bool))
+        scatter = lambda whole, part: whole.astype(part.dtype).at[slots].set(part, mode="drop")
+        return jax.tree.map(scatter, read_out, fitted)
 
     return jax.lax.cond(jnp.sum(detected) <= group, few, lambda: estimator.estimate(stage, coarse, sequence, noise_var))
