@@ -38,6 +38,13 @@ def quick_compile(enabled: bool = True):
         _QUICK_COMPILE.reset(token)
 
 
+def compiling_quick() -> bool:
+    """Whether the program being traced now is compiled for a short compile (`quick_compile`):
+    a model may then trace a smaller form of the same arithmetic, one that compiles faster
+    and runs slower."""
+    return _QUICK_COMPILE.get()
+
+
 # Every product of float32 matrices in the programs at full float32 precision. XLA's default on
 # a GPU is TF32 (a 10-bit mantissa, ~5e-4 relative): measured on an H200, a noiseless target's
 # DFT window (a float32 product) then left the ML fit a reduced χ² above 5 (poor_fit), where the
@@ -77,9 +84,10 @@ def async_filter_jit(fun):
         return flat
 
     @functools.cache
-    def traced(static_leaves, mask, treedef):
+    def traced(static_leaves, mask, treedef, quick):
         """The program as a plain `jax.jit`, for calls under another transformation (a
-        compiled executable takes concrete arrays only)."""
+        compiled executable takes concrete arrays only); one per `quick` (`compiling_quick`
+        may choose what it traces)."""
         return jax.jit(flat_fun(static_leaves, mask, treedef))
 
     @functools.wraps(fun)
@@ -92,7 +100,7 @@ def async_filter_jit(fun):
         arrays = [x for x, m in zip(leaves, mask) if m]
         static_leaves = tuple(x for x, m in zip(leaves, mask) if not m)
         if any(isinstance(x, jax.core.Tracer) for x in arrays):  # inside another transformation
-            return traced(static_leaves, mask, treedef)(*arrays)
+            return traced(static_leaves, mask, treedef, _QUICK_COMPILE.get())(*arrays)
         signature = tuple(map(_argument_signature, arrays))
         quick = _QUICK_COMPILE.get()
         key = (static_leaves, mask, treedef, signature, quick)
