@@ -31,7 +31,7 @@ from .constants import SPEED_OF_LIGHT_M_PER_S
 from .effects import EffectSettings, parse_effects
 from .instrument import Instrument
 from .modulator import beat_spectrum
-from .runtime import async_filter_jit, place_on_devices, stream_devices
+from .runtime import async_filter_jit, place_on_devices, quick_compile, stream_devices
 from .scenes import Scene
 
 # Streams of the PRNG key, one per effect, so an effect's draws never shift another's.
@@ -201,6 +201,11 @@ def sensor_readout(key: PRNGKeyArray, electrons: Float[Array, "4 ..."], instrume
     return dn.astype(jnp.float32)
 
 
+# captures of at most this many pixel-frames are simulated by programs compiled for a short
+# compile (`runtime.quick_compile`; `iter_frame_chunks`)
+QUICK_SIMULATION_MAX_SAMPLES = 2**18
+
+
 @async_filter_jit  # returns at once: the next chunk computes while the caller writes this one
 def _frames_chunk(
     instrument,
@@ -270,7 +275,12 @@ def iter_frame_chunks(
         k = m0 // chunk
         inst, settings, ret, f, carrier_on, key_on = placed[k % len(placed)]
         start = jax.device_put(jnp.asarray(m0), devices[k % len(devices)])
-        return _frames_chunk(inst, settings, ret, f, carrier_on, start, key_on, num_frames=chunk, effects=effects)
+        with quick_compile(quick):
+            return _frames_chunk(inst, settings, ret, f, carrier_on, start, key_on, num_frames=chunk, effects=effects)
+
+    # a small capture (a test's, a region of interest): compiling its chunk program is most of
+    # its time; a larger one runs ~2.5× slower so (docs/performance.md)
+    quick = height * width * n <= QUICK_SIMULATION_MAX_SAMPLES
 
     starts = list(range(0, n, chunk))
     pending = collections.deque(launch(m0) for m0 in starts[: len(devices)])

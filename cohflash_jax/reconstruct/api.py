@@ -19,14 +19,10 @@ from ..estimate.drift import CarrierAlignment, choose_carrier_alignment
 from ..fisher import crlb_at_unit_snr_m
 from ..instrument import Instrument
 from ..progress import progress_bar
-from ..runtime import quick_compile, retain_freed_memory
+from ..runtime import QUICK_COMPILE_MAX_PIXELS, quick_compile, retain_freed_memory
 from .engine import BlockReader, TileDispatcher, sub_tile_pixels
 from .plan import TilePlan, build_plan, frequency_path
 from .policy import ReconstructOptions
-
-# captures of at most this many pixels (a region of interest) run their programs once or
-# twice: they are compiled for a short compile (`runtime.quick_compile`); larger ones for speed
-QUICK_COMPILE_MAX_PIXELS = 1024
 
 
 @dataclasses.dataclass
