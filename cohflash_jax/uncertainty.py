@@ -33,7 +33,7 @@ from .estimate.coarse import unitary_rfft
 from .estimate.iq import align_carrier_static, derotate, iq_from_frames
 from .estimate.window_model import UniformModel, bin_weights, window_tables
 from .reconstruct import TilePlan, process_tile, program_plan
-from .runtime import async_filter_jit
+from .runtime import QUICK_COMPILE_MAX_PIXELS, async_filter_jit, quick_compile
 from .status import Status
 
 PARAMETERS = ("depth_offset_mm", "amplitude", "carrier_phase_rad")
@@ -80,8 +80,10 @@ def pixel_data(plan: TilePlan, frames, window_bins: int, dark=None, gain=None) -
     with their per-pixel offsets and gains (4, P) where given → PixelData (leading P), in
     NumPy (a pixel is then taken out without a compiled indexing operation). The plan goes in
     as the programs take it (`program_plan`): another calibration's τ_sys or another
-    threshold runs the program already compiled."""
-    fields = _pixel_data(program_plan(plan), frames, window_bins, dark, gain)
+    threshold runs the program already compiled. A few pixels (what is sampled: each posterior
+    takes a second or so) are compiled for a short compile (`runtime.quick_compile`)."""
+    with quick_compile(frames.shape[-1] <= QUICK_COMPILE_MAX_PIXELS):
+        fields = _pixel_data(program_plan(plan), frames, window_bins, dark, gain)
     return PixelData(*(np.asarray(x) for x in fields))
 
 
