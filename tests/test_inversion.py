@@ -453,6 +453,7 @@ def test_straggler_pass_gives_each_pixel_its_uninterrupted_polish():
     from cohflash_jax.estimate.window_ml import grid_for, refine_ml_uniform
     from cohflash_jax.estimate.window_model import UniformModel, window_tables
     from cohflash_jax.modulator import MZM
+    from cohflash_jax.runtime import QUICK_COMPILE_OPTIONS, quick_compile
 
     n, start_hz, step_hz, width = 3000, 0.1e9, 5.9e9 / 3000, 17
     model = UniformModel(start_hz, step_hz, jnp.asarray(MZM().weights(3e9)), num_frames=n)
@@ -471,9 +472,11 @@ def test_straggler_pass_gives_each_pixel_its_uninterrupted_polish():
         rng.normal(size=tones.shape) + 1j * rng.normal(size=tones.shape)
     )
     half, points, candidates = grid_for(bin_m, C / (2 * (start_hz + 0.5 * step_hz * n)))
-    # jitted (one program a pass count), not op by op: hundreds of small compiles otherwise
-    fit = jax.jit(
-        lambda first: refine_ml_uniform(
+
+    # jitted (one program a pass count), not op by op: hundreds of small compiles otherwise;
+    # compiled as a region of interest's programs are (`quick_compile`), in half the time
+    def fit(first):
+        refine = lambda: refine_ml_uniform(
             model,
             windows,
             jnp.asarray(k0),
@@ -484,9 +487,10 @@ def test_straggler_pass_gives_each_pixel_its_uninterrupted_polish():
             candidates=candidates,
             max_steps=16,
             first_pass_steps=first,
-        ),
-        static_argnums=0,
-    )
+        )
+        with quick_compile():
+            return jax.jit(refine).lower().compile(compiler_options=QUICK_COMPILE_OPTIONS)()
+
     whole, resumed = fit(16), fit(1)
     steps = np.asarray(whole.num_steps)
     assert steps.max() >= 4 and (steps > 1).sum() > 2 * STRAGGLER_GROUP  # with first_pass_steps = 1: three groups
