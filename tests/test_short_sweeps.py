@@ -118,17 +118,12 @@ def test_table_fit_matches_the_time_domain_ml_fit(comb):
     amp, offset, noise_sigma = 80.0, 400.0, 2.0
     clean = offset + amp * _tone(f, weights, depths)  # (P, N)
     coarse = depths + rng.uniform(-0.4, 0.4, depths.size) * bin_m
-    for noise in (0.0, noise_sigma):
-        r = clean + noise * rng.standard_normal(clean.shape)
-        noise_var = np.full(depths.size, max(noise, 1e-3) ** 2)
+
+    # each fit one program for both noise levels, not op by op (~250 small compiles otherwise)
+    @jax.jit
+    def fits(r, coarse, noise_var):
         table_fit = tt.refine_ml_table(
-            est.table,
-            plan.model,
-            jnp.asarray(r.T),
-            jnp.asarray(coarse),
-            jnp.asarray(noise_var),
-            half_width_m=est.half_width_m,
-            max_steps=est.max_steps,
+            est.table, plan.model, r.T, coarse, noise_var, half_width_m=est.half_width_m, max_steps=est.max_steps
         )
         direct = jax.vmap(
             lambda rr, d, v: refine_time_domain(
@@ -142,7 +137,13 @@ def test_table_fit_matches_the_time_domain_ml_fit(comb):
                 grid_points=grid_points,
                 max_steps=est.max_steps,
             )
-        )(jnp.asarray(r), jnp.asarray(coarse), jnp.asarray(noise_var))
+        )(r, coarse, noise_var)
+        return table_fit, direct
+
+    for noise in (0.0, noise_sigma):
+        r = clean + noise * rng.standard_normal(clean.shape)
+        noise_var = np.full(depths.size, max(noise, 1e-3) ** 2)
+        table_fit, direct = fits(jnp.asarray(r), jnp.asarray(coarse), jnp.asarray(noise_var))
         assert np.all(table_fit.converged & table_fit.well_posed)
         # compared where the reference polish converged too (it can miss its step tolerance on a noiseless pixel)
         ok = np.asarray(direct.converged & direct.well_posed)
