@@ -31,7 +31,7 @@ from .constants import SPEED_OF_LIGHT_M_PER_S
 from .effects import EffectSettings, parse_effects
 from .instrument import Instrument
 from .modulator import beat_spectrum
-from .runtime import async_filter_jit, place_on_devices, quick_compile, stream_devices
+from .runtime import QUICK_COMPILE_MAX_PIXELS, async_filter_jit, place_on_devices, quick_compile, stream_devices
 from .scenes import Scene
 
 # Streams of the PRNG key, one per effect, so an effect's draws never shift another's.
@@ -83,15 +83,13 @@ def build_returns(scene: Scene, instrument: Instrument, height: int, width: int,
         k = settings.speckle_scatterers
         if k < 1:
             raise ValueError("speckle_scatterers must be ≥ 1")
-        kd, kp, ka = jax.random.split(jax.random.fold_in(key, _KEY_SPECKLE), 3)
         gy, gx = np.gradient(depth, axis=(2, 3))
         slope_span = np.clip(np.abs(gx) + np.abs(gy), 0, 0.01)  # depth across one pixel, edges capped
-        shape = (C, S, k, height, width)
-        spread = float(settings.surface_roughness_m) * np.asarray(jax.random.normal(kd, shape)) + slope_span[
-            :, :, None
-        ] * (np.asarray(jax.random.uniform(kp, shape)) - 0.5)
+        with quick_compile(height * width <= QUICK_COMPILE_MAX_PIXELS):
+            draws = _speckle_draws(jax.random.fold_in(key, _KEY_SPECKLE), (C, S, k, height, width))
+        roughness, across, gauss = (np.asarray(d) for d in draws)
+        spread = float(settings.surface_roughness_m) * roughness + slope_span[:, :, None] * (across - 0.5)
         depth_r = depth[:, :, None] + spread
-        gauss = np.asarray(jax.random.normal(ka, shape + (2,)))
         speckle = (gauss[..., 0] + 1j * gauss[..., 1]) / np.sqrt(2 * k)  # E|Σ a|² = 1
         amp = np.sqrt(echo_sub)[:, :, None] * speckle
         depth_r = depth_r.reshape(C, S * k, height * width)
@@ -103,6 +101,16 @@ def build_returns(scene: Scene, instrument: Instrument, height: int, width: int,
     delay = 2.0 * depth_r / SPEED_OF_LIGHT_M_PER_S + float(instrument.system_delay_s)
     echo_e = echo_sub.sum(axis=1).reshape(C, height * width)
     return Returns(jnp.asarray(delay), jnp.asarray(amp), jnp.asarray(echo_e))
+
+
+@async_filter_jit
+def _speckle_draws(key: PRNGKeyArray, shape: tuple[int, ...]):
+    """The speckle's random draws for scatterers of `shape` (C, S, k, H, W): each one's depth
+    within the surface's roughness (standard normal) and across the pixel's slope (uniform), and
+    its complex Gaussian amplitude (…, 2). One program, kept on disk: drawn op by op, each was a
+    program of its own compiled in every process."""
+    kd, kp, ka = jax.random.split(key, 3)
+    return jax.random.normal(kd, shape), jax.random.uniform(kp, shape), jax.random.normal(ka, shape + (2,))
 
 
 def turbulence_phase(key: PRNGKeyArray, num_frames: int, rad_per_sqrt_frame: float) -> Float[Array, " N"]:
