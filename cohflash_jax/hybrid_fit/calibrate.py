@@ -15,7 +15,7 @@ from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..estimate.drift import initial_common_drift
 from ..estimate.iq import align_carrier_static, derotate, iq_from_frames
 from ..hybrid import Hybrid
-from ..runtime import async_filter_jit
+from ..runtime import QUICK_COMPILE_MAX_PIXELS, async_filter_jit, quick_compile
 from ..status import Status
 from .common import MIN_FRAMES, MIN_PIXELS, Estimate, tone_sequences
 from .hybrid_stage import common_carrier, fit_hybrid, fit_offsets, pixel_statistics
@@ -121,7 +121,41 @@ def calibrate_hybrid(
 ) -> dict:
     """The whole calibration → a `cohflash-calibration` document (dict) plus per-pixel maps.
 
-    Returns {"document": JSON-able dict, "maps": {name: array} (may be empty)}."""
+    Returns {"document": JSON-able dict, "maps": {name: array} (may be empty)}.
+
+    The fits run on at most `max_pixels` selected pixels, a few times each: where those are
+    few (`runtime.QUICK_COMPILE_MAX_PIXELS`), compiling their programs is most of a first run,
+    so they are compiled for a short compile (the survey of the whole capture decides for
+    itself, by its size)."""
+    with quick_compile(max_pixels <= QUICK_COMPILE_MAX_PIXELS):
+        return _calibrate_hybrid(
+            capture_path,
+            dark_path=dark_path,
+            flat_path=flat_path,
+            known_distance_m=known_distance_m,
+            max_pixels=max_pixels,
+            modulator_pixels=modulator_pixels,
+            iterations=iterations,
+            inner_iterations=inner_iterations,
+            min_depth_m=min_depth_m,
+            progress=progress,
+        )
+
+
+def _calibrate_hybrid(
+    capture_path,
+    *,
+    dark_path,
+    flat_path,
+    known_distance_m: float | None,
+    max_pixels: int,
+    modulator_pixels: int,
+    iterations: int,
+    inner_iterations: int,
+    min_depth_m: float,
+    progress: bool,
+) -> dict:
+    """`calibrate_hybrid`'s work."""
     from ..reconstruct import ReconstructOptions, reconstruct_array, reconstruct_capture
 
     if known_distance_m is not None and not (math.isfinite(known_distance_m) and known_distance_m > 0):
