@@ -400,7 +400,7 @@ def test_reconstruct_array_refuses_inputs_that_do_not_fit():
 
 def test_sub_tile_size_follows_the_platform():
     """CPU: cache-sized sub-tiles of at most 8192 px, at least 4 a tile; a GPU takes the tile
-    whole up to 256 MiB of frames."""
+    whole up to 256 MiB of frames. A region of interest is padded to its pixel bucket on both."""
     from cohflash_jax.reconstruct import sub_tile_pixels
 
     assert sub_tile_pixels(10240, 3000, platform="cpu") == 12 * 2**20 // (8 * 3000) == 524
@@ -409,6 +409,8 @@ def test_sub_tile_size_follows_the_platform():
     assert sub_tile_pixels(2000, 35, platform="cpu") == 500
     assert sub_tile_pixels(81920, 35, platform="gpu") == sub_tile_pixels(10240, 3000, platform="cuda") * 8 == 81920
     assert sub_tile_pixels(81920, 3000, platform="gpu") == 256 * 2**20 // (8 * 3000) == 11184
+    assert sub_tile_pixels(25, 3000, platform="cpu") == sub_tile_pixels(25, 3000, platform="gpu") == 64
+    assert sub_tile_pixels(200, 3000, platform="gpu") == 256 and sub_tile_pixels(1500, 3000, platform="gpu") == 1500
 
 
 def test_polish_converges_in_few_newton_steps_and_never_reports_a_maximum_as_converged():

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..capture import Capture
-from ..runtime import place_on_devices, stream_devices
+from ..runtime import QUICK_COMPILE_MAX_PIXELS, place_on_devices, stream_devices
 from .plan import TilePlan, program_plan
 from .programs import process_tile
 
@@ -48,9 +48,12 @@ def pixel_bucket(num_pixels: int) -> int:
 
 def sub_tile_pixels(num_pixels: int, num_frames: int, platform: str | None = None) -> int:
     """Pixels per dispatched sub-tile on `platform` (default: JAX's default backend); a capture
-    smaller than one sub-tile is padded to its `pixel_bucket`."""
+    smaller than one sub-tile is padded to its `pixel_bucket`. On a GPU, where a piece is the
+    whole tile, a region of interest (`runtime.QUICK_COMPILE_MAX_PIXELS`) is padded alike, so
+    its neighbours in size run its programs there too."""
     if (platform or jax.default_backend()) != "cpu":
-        return int(max(1, min(num_pixels, DEVICE_PIECE_BYTES // (8 * max(1, num_frames)))))
+        pixels = pixel_bucket(num_pixels) if num_pixels <= QUICK_COMPILE_MAX_PIXELS else num_pixels
+        return int(max(1, min(pixels, DEVICE_PIECE_BYTES // (8 * max(1, num_frames)))))
     by_memory = SUB_TILE_CACHE_BYTES // (8 * max(1, num_frames))
     limit = min(by_memory, MAX_SUB_TILE_PIXELS, max(MIN_SUB_TILE_PIXELS, -(-num_pixels // MIN_PIECES)))
     return int(max(1, min(pixel_bucket(num_pixels), limit)))
