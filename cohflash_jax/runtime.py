@@ -25,9 +25,9 @@ XLA_CACHE_MAX_BYTES = 512 * 2**20
 # most of its time and the program's speed hardly counts (docs/performance.md)
 _QUICK_COMPILE: contextvars.ContextVar[bool] = contextvars.ContextVar("quick_compile", default=False)
 QUICK_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
-# captures of at most this many pixels (a region of interest, a test's) run their programs once
-# or twice: the reconstruction and the simulator compile theirs for a short compile; larger
-# ones for speed
+# work on at most this many pixels (a region of interest, a test's capture, the pixels a
+# posterior or a calibration fits) runs its programs once or twice, so they are compiled for a
+# short compile; larger work for speed
 QUICK_COMPILE_MAX_PIXELS = 1024
 
 

@@ -278,6 +278,9 @@ def iter_frame_chunks(
     # chunk's program leaves a core idle; the chunks are the same on any device
     devices = stream_devices()
     placed = place_on_devices((true, scene.settings, returns, jnp.asarray(freqs), carrier, frames_key), devices)
+    # a small capture (a test's, a region of interest): compiling its chunk program is most of
+    # its time; a larger one runs slower so than it saves (docs/performance.md)
+    quick = height * width * n <= QUICK_SIMULATION_MAX_SAMPLES
 
     def launch(m0):
         k = m0 // chunk
@@ -285,10 +288,6 @@ def iter_frame_chunks(
         start = jax.device_put(jnp.asarray(m0), devices[k % len(devices)])
         with quick_compile(quick):
             return _frames_chunk(inst, settings, ret, f, carrier_on, start, key_on, num_frames=chunk, effects=effects)
-
-    # a small capture (a test's, a region of interest): compiling its chunk program is most of
-    # its time; a larger one runs ~2.5× slower so (docs/performance.md)
-    quick = height * width * n <= QUICK_SIMULATION_MAX_SAMPLES
 
     starts = list(range(0, n, chunk))
     pending = collections.deque(launch(m0) for m0 in starts[: len(devices)])

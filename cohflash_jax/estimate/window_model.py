@@ -225,9 +225,9 @@ class UniformModel(eqx.Module):
 
         if compiling_quick():
             # every order at once on a leading axis (K, W), summed over the orders: one copy
-            # of the arithmetic, which XLA's lowest optimisation level compiles in ~60 % of
-            # the time of the loop below. Optimised code runs slower so: the sums over the
-            # orders split what the loop's additions keep in one fused pass
+            # of the arithmetic, which XLA's lowest optimisation level compiles much faster
+            # than the loop below. Optimised code runs slower so: the sums over the orders
+            # split what the loop's additions keep in one fused pass (docs/performance.md)
             column = lambda z: tuple(v[:, None] for v in powers(z, top))
             terms = orders_terms(
                 column(e_a),
