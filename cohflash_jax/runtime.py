@@ -103,10 +103,10 @@ def async_filter_jit(fun):
         mask = tuple(map(eqx.is_array, leaves))
         arrays = [x for x, m in zip(leaves, mask) if m]
         static_leaves = tuple(x for x, m in zip(leaves, mask) if not m)
-        if any(isinstance(x, jax.core.Tracer) for x in arrays):  # inside another transformation
-            return traced(static_leaves, mask, treedef, _QUICK_COMPILE.get())(*arrays)
-        signature = tuple(map(_argument_signature, arrays))
         quick = _QUICK_COMPILE.get()
+        if any(isinstance(x, jax.core.Tracer) for x in arrays):  # inside another transformation
+            return traced(static_leaves, mask, treedef, quick)(*arrays)
+        signature = tuple(map(_argument_signature, arrays))
         key = (static_leaves, mask, treedef, signature, quick)
         program = programs.get(key)
         if program is None:
