@@ -274,29 +274,57 @@ def solve(initial: np.ndarray, layout: Layout, object_points: np.ndarray, observ
     return JointSolution(x, cov, layout, inliers, err, float(np.sqrt(sigma2)), rms, dropped)
 
 
+def pixel_map(intrinsics_ref, pose, intrinsics_cam, pixels, distance_mm, mirrored_width):
+    """Pixels (P, 2) of CCD 1 → pixels (P, 2) of a camera at `pose` (rvec, T relative to CCD 1)
+    with `intrinsics_cam`, seeing the same point of a fronto-parallel plane at `distance_mm`.
+    `mirrored_width` > 0 un-flips a mirrored CCD's frame of that width (0: not mirrored). Every
+    number is an argument, so one compiled program serves every camera, distance and flip."""
+    xy = unproject(intrinsics_ref, pixels)
+    pts = jnp.concatenate([xy, jnp.ones_like(xy[..., :1])], axis=-1) * distance_mm
+    pts = pts @ rodrigues(pose[:3]).T + pose[3:]
+    uv = project(intrinsics_cam, pts)
+    u = jnp.where(mirrored_width > 0, mirrored_width - 1 - uv[..., 0], uv[..., 0])
+    return uv.at[..., 0].set(u)
+
+
 def map_function(layout: Layout, camera: int, distance_mm: float, mirrored_width: int | None):
-    """(params, pixels (P, 2) of CCD 1) → pixels (P, 2) of `camera` seeing the same point of a
-    fronto-parallel plane at `distance_mm`; `mirrored_width` un-flips a mirrored CCD's frame."""
+    """(params, pixels (P, 2) of CCD 1) → pixels (P, 2) of `camera` (`pixel_map` of the joint
+    parameter vector); `mirrored_width` un-flips a mirrored CCD's frame."""
 
     def fn(params, pixels):
-        xy = unproject(params[layout.intrinsics(0)], pixels)
-        pts = jnp.concatenate([xy, jnp.ones_like(xy[..., :1])], axis=-1) * distance_mm
-        pose = params[layout.camera_pose(camera)]
-        pts = pts @ rodrigues(pose[:3]).T + pose[3:]
-        uv = project(params[layout.intrinsics(camera)], pts)
-        if mirrored_width is not None:
-            uv = uv.at[..., 0].set(mirrored_width - 1 - uv[..., 0])
-        return uv
+        return pixel_map(
+            params[layout.intrinsics(0)],
+            params[layout.camera_pose(camera)],
+            params[layout.intrinsics(camera)],
+            pixels,
+            distance_mm,
+            mirrored_width or 0,
+        )
 
     return fn
 
 
+# the map's Jacobian in its three blocks (CCD 1's intrinsics, the camera's pose, its
+# intrinsics): one program per pixel count, not one per camera, distance and call
+map_jacobian = jax.jit(jax.jacfwd(pixel_map, argnums=(0, 1, 2)))
+
+
 def map_sigma_at(solution: JointSolution, camera: int, pixels, image_width: int, distance_mm: float, mirrored: bool):
     """1σ (px) of the pixel map at CCD 1 `pixels` (P, 2): the larger axis of the map's 2×2
-    covariance, propagated from the joint covariance (board poses marginalised)."""
-    fn = map_function(solution.layout, camera, distance_mm, image_width if mirrored else None)
-    jac = np.asarray(jax.jit(jax.jacfwd(fn))(jnp.asarray(solution.params), jnp.asarray(pixels, jnp.float64)))
-    cov = np.einsum("pin,nm,pjm->pij", jac, solution.covariance, jac)
+    covariance, propagated from the joint covariance (board poses marginalised: the map
+    depends on none of them, so only the covariance of its 24 parameters enters)."""
+    layout = solution.layout
+    blocks = (layout.intrinsics(0), layout.camera_pose(camera), layout.intrinsics(camera))
+    columns = np.concatenate([np.arange(b.start, b.stop) for b in blocks])
+    params = np.asarray(solution.params, np.float64)
+    jac = map_jacobian(
+        *(jnp.asarray(params[b]) for b in blocks),
+        jnp.asarray(pixels, jnp.float64),
+        jnp.float64(distance_mm),
+        jnp.float64(image_width if mirrored else 0),
+    )
+    jac = np.concatenate([np.asarray(j) for j in jac], axis=-1)  # (P, 2, 24)
+    cov = np.einsum("pin,nm,pjm->pij", jac, solution.covariance[np.ix_(columns, columns)], jac)
     return np.sqrt(np.linalg.eigvalsh(cov)[:, -1].clip(0))
 
 

@@ -83,6 +83,29 @@ def test_pixel_map_sigma_covers_the_map_error_where_the_board_went(monte_carlo):
     assert np.mean(pulls < 2.5) > 0.92
 
 
+def test_map_sigma_is_the_whole_covariance_propagated_and_one_program_serves_every_camera(monte_carlo):
+    """σ from the map's 24 parameters alone equals the whole joint covariance propagated
+    through the Jacobian of the whole parameter vector (the board poses do not move the map),
+    mirrored CCDs included; other cameras, distances and flips make no new program."""
+    import jax
+
+    _, runs = monte_carlo
+    r = runs[0]
+    pix = np.stack(np.meshgrid(np.linspace(0, 639, 5), np.linspace(0, 479, 4)), -1).reshape(-1, 2)
+    for camera, distance, mirrored in [(1, 450.0, False), (3, 900.0, True)]:
+        fn = joint.map_function(LAYOUT, camera, distance, 640 if mirrored else None)
+        jac = np.asarray(jax.jacfwd(fn)(jnp.asarray(r.params), jnp.asarray(pix)))
+        assert np.count_nonzero(np.abs(jac).sum(axis=(0, 1))) == 24
+        cov = np.einsum("pin,nm,pjm->pij", jac, r.covariance, jac)
+        whole = np.sqrt(np.linalg.eigvalsh(cov)[:, -1])
+        np.testing.assert_allclose(joint.map_sigma_at(r, camera, pix, 640, distance, mirrored), whole, rtol=1e-9)
+    programs = joint.map_jacobian._cache_size()
+    for camera in (1, 2, 3):
+        for distance in (300.0, 700.0):
+            joint.map_sigma_at(r, camera, pix, 640, distance, camera == 2)
+    assert joint.map_jacobian._cache_size() == programs
+
+
 def test_one_bad_corner_is_rejected_alone_and_the_view_kept():
     x_true = truth()
     clean = np.asarray(joint.predict(jnp.asarray(x_true), LAYOUT, jnp.asarray(OBJ)))
