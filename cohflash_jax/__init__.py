@@ -12,17 +12,22 @@ stage then picks float32 or float64 explicitly.
 
 import sys as _sys
 
-import jax as _jax
+# a `cohflash` process: NumPy's BLAS on one thread (set before NumPy loads it) and a GPU's
+# memory taken on demand (set before JAX's backends start)
+from .process import gpu_memory_on_demand_for_cli as _gpu_memory_on_demand_for_cli
+from .process import single_threaded_blas_for_cli as _single_threaded_blas_for_cli
+
+_single_threaded_blas_for_cli(getattr(_sys, "orig_argv", _sys.argv))
+_gpu_memory_on_demand_for_cli(getattr(_sys, "orig_argv", _sys.argv))
+
+import jax as _jax  # noqa: E402
 
 _jax.config.update("jax_enable_x64", True)
 
-# a `cohflash` process: a GPU's memory taken on demand (set before JAX's backends start), and
 # for `reconstruct` (or `stream`) its last run's programs loaded in a thread while the imports
 # below run
-from .runtime import gpu_memory_on_demand_for_cli as _gpu_memory_on_demand_for_cli  # noqa: E402
 from .runtime import prefetch_for_cli as _prefetch_for_cli  # noqa: E402
 
-_gpu_memory_on_demand_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 _prefetch_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 
 from .calibration_file import Calibration, PixelMaps  # noqa: E402

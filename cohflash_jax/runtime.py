@@ -13,6 +13,8 @@ from typing import NoReturn
 
 import numpy as np
 
+from .process import cli_command, cli_input_bytes
+
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc mallopt parameters (malloc.h)
 _applied = False
 
@@ -567,50 +569,6 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
 # Commands whose runs load the same executables run after run (one capture size's programs):
 # the next run of one loads its last run's entries while the package is still being imported
 PREFETCH_COMMANDS = ("reconstruct", "stream")
-
-
-def cli_command(argv) -> str | None:
-    """The `cohflash` command an interpreter runs, read off its own command line
-    (`sys.orig_argv`): `cohflash CMD …` (the console script) or `python … -m cohflash_jax.cli
-    CMD …`; None for anything else (a library user, a test run, a Dask worker)."""
-    argv = list(argv)
-    for k, arg in enumerate(argv):
-        if k >= 1 and os.path.basename(arg) == "cohflash":
-            rest = argv[k + 1 :]
-        elif arg == "-m" and argv[k + 1 : k + 2] == ["cohflash_jax.cli"]:
-            rest = argv[k + 2 :]
-        else:
-            continue
-        return rest[0] if rest and not rest[0].startswith("-") else None
-    return None
-
-
-def cli_input_bytes(argv) -> int | None:
-    """The size of the largest existing file named on a command line: a `cohflash` run's
-    capture (the depth file it may overwrite, a calibration or a registration are smaller)."""
-    sizes = []
-    for arg in argv[1:]:
-        try:
-            if not arg.startswith("-") and os.path.isfile(arg):
-                sizes.append(os.path.getsize(arg))
-        except (OSError, ValueError):
-            continue
-    return max(sizes, default=None)
-
-
-def gpu_memory_on_demand_for_cli(argv) -> bool:
-    """Where this interpreter runs a `cohflash` command (`cli_command`), let a GPU's memory be
-    taken as the programs ask for it instead of JAX's default of three quarters of the card
-    reserved as its backend starts (`XLA_PYTHON_CLIENT_PREALLOCATE=false`, unless the user set
-    it). A command's programs need a few GB; on an H200, reserving ~105 GB made each warm
-    full-capture `cohflash reconstruct` 1.4 s slower, its reconstruction 2.4 s against 1.0 s
-    (docs/performance.md). A library user's process or a test run keeps JAX's setting (local
-    Dask workers a command starts inherit the command's). Called on import, before JAX's
-    backends start; returns whether the command's process takes memory on demand."""
-    if cli_command(argv) is None:
-        return False
-    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    return os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"].lower() in ("false", "0")
 
 
 def prefetch_for_cli(argv) -> bool:

@@ -8,6 +8,8 @@ import csv
 import hashlib
 import json
 import os
+import subprocess
+import sys
 
 import h5py
 import numpy as np
@@ -323,11 +325,47 @@ def test_the_cohflash_process_ends_with_its_status_and_complete_outputs(tmp_path
         assert check(target), mode
 
 
+def test_a_cohflash_process_runs_numpys_blas_on_one_thread_unless_told_otherwise(monkeypatch, tmp_path):
+    """A `cohflash` command's interpreter sets OPENBLAS_NUM_THREADS=1 before NumPy loads
+    OpenBLAS (its pool spun beside XLA's threads during the carrier survey); a user's own
+    setting stands, and a library user's or a test run's process is left as it is. Checked
+    in a process run as `cohflash`: the thread count OpenBLAS itself reports, where it can."""
+    from cohflash_jax.process import single_threaded_blas_for_cli
+
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    assert not single_threaded_blas_for_cli(["python", "-m", "pytest", "tests"])
+    assert "OPENBLAS_NUM_THREADS" not in os.environ
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "2")
+    assert not single_threaded_blas_for_cli(["/venv/bin/cohflash", "/venv/bin/cohflash", "reconstruct", "c.h5"])
+    assert os.environ["OPENBLAS_NUM_THREADS"] == "2"
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS")
+    script = tmp_path / "cohflash"  # the console script's name: `cli_command` reads "info"
+    names = ("scipy_openblas_get_num_threads64_", "openblas_get_num_threads64_", "openblas_get_num_threads")
+    script.write_text(
+        "import ctypes, os\n"
+        "import cohflash_jax\n"
+        "threads = None\n"
+        "for line in open('/proc/self/maps'):\n"
+        "    if 'openblas' in line and threads is None:\n"
+        "        lib = ctypes.CDLL(line.split()[-1])\n"
+        f"        for name in {names!r}:\n"
+        "            if hasattr(lib, name):\n"
+        "                threads = getattr(lib, name)()\n"
+        "                break\n"
+        "print(os.environ.get('OPENBLAS_NUM_THREADS'), threads)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    done = subprocess.run([sys.executable, str(script), "info"], capture_output=True, text=True, env=env, check=True)
+    setting, threads = done.stdout.split()
+    assert setting == "1"
+    assert threads in ("1", "None"), done.stdout  # None: no OpenBLAS found in this process (another BLAS)
+
+
 def test_a_cohflash_process_takes_gpu_memory_on_demand_unless_told_otherwise(monkeypatch):
     """A `cohflash` command's interpreter sets XLA_PYTHON_CLIENT_PREALLOCATE=false before JAX
     starts (reserving three quarters of an H200 cost each full-capture run 1.4 s); a user's own setting
     stands, and a library user's or a test run's process is left as it is."""
-    from cohflash_jax.runtime import gpu_memory_on_demand_for_cli
+    from cohflash_jax.process import gpu_memory_on_demand_for_cli
 
     monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)
     assert not gpu_memory_on_demand_for_cli(["python", "-m", "pytest", "tests"])

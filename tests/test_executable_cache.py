@@ -293,7 +293,7 @@ def test_a_reconstruct_process_loads_its_last_runs_programs_while_it_imports(tmp
     import h5py
 
     from cohflash_jax.cli import main
-    from cohflash_jax.runtime import cli_command, cli_input_bytes
+    from cohflash_jax.process import cli_command, cli_input_bytes
 
     capture = tmp_path / "c.h5"
     assert main(["simulate", "planar", "--size", "4x4", "--steps", "128", "--out", str(capture), "--quiet"]) == 0

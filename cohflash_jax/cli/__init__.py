@@ -9,11 +9,11 @@ import sys
 from pathlib import Path
 
 from ..fileio import OutputSet
+from ..process import cli_input_bytes
 from ..runtime import (
     CLI_CPU_STREAMS,
     EXECUTABLES,
     PREFETCH_COMMANDS,
-    cli_input_bytes,
     enable_compilation_cache,
     exit_process,
     use_cpu_streams,
