@@ -12,11 +12,14 @@ stage then picks float32 or float64 explicitly.
 
 import sys as _sys
 
-# a `cohflash` process: NumPy's BLAS on one thread (set before NumPy loads it) and a GPU's
-# memory taken on demand (set before JAX's backends start)
+# a `cohflash` process: NumPy's BLAS on one thread (set before NumPy loads it), a GPU's
+# memory taken on demand (set before JAX's backends start), and no garbage collection until
+# the command module is imported (`cli`)
 from .process import gpu_memory_on_demand_for_cli as _gpu_memory_on_demand_for_cli
+from .process import pause_garbage_collection_for_cli as _pause_garbage_collection_for_cli
 from .process import single_threaded_blas_for_cli as _single_threaded_blas_for_cli
 
+_pause_garbage_collection_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 _single_threaded_blas_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 _gpu_memory_on_demand_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 

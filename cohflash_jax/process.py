@@ -7,7 +7,10 @@ environment."""
 
 from __future__ import annotations
 
+import gc
 import os
+
+_PAUSED = False  # garbage collection paused by `pause_garbage_collection_for_cli`
 
 
 def cli_command(argv) -> str | None:
@@ -65,3 +68,30 @@ def single_threaded_blas_for_cli(argv) -> bool:
         return False
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     return os.environ["OPENBLAS_NUM_THREADS"] == "1"
+
+
+def pause_garbage_collection_for_cli(argv) -> bool:
+    """Where this interpreter runs a `cohflash` command, no garbage collection while the
+    package and its dependencies are imported (`resume_garbage_collection`). Importing JAX
+    and equinox makes ~10⁶ long-lived objects, and the collector's passes over them as they
+    are made cost ~0.1–0.15 s of each command's start (docs/performance.md). Returns whether
+    collection was paused."""
+    global _PAUSED
+    if cli_command(argv) is None or not gc.isenabled():
+        return False
+    gc.disable()
+    _PAUSED = True
+    return True
+
+
+def resume_garbage_collection() -> bool:
+    """Collection on again after the imports (where `pause_garbage_collection_for_cli` paused
+    it), the objects made so far frozen: they live as long as the process, so later full
+    passes need not walk them. Returns whether it resumed."""
+    global _PAUSED
+    if not _PAUSED:
+        return False
+    gc.freeze()
+    gc.enable()
+    _PAUSED = False
+    return True

@@ -361,6 +361,25 @@ def test_a_cohflash_process_runs_numpys_blas_on_one_thread_unless_told_otherwise
     assert threads in ("1", "None"), done.stdout  # None: no OpenBLAS found in this process (another BLAS)
 
 
+def test_a_cohflash_process_collects_no_garbage_while_it_imports(tmp_path):
+    """In a process run as `cohflash`, garbage collection is off while the package loads and
+    on again, the imports' objects frozen, once the command module is loaded; a library
+    user's process keeps its collector as it was throughout."""
+    probe = (
+        "import gc\n"
+        "import cohflash_jax\n"
+        "print(gc.isenabled())\n"
+        "import cohflash_jax.cli\n"
+        "print(gc.isenabled(), gc.get_freeze_count() > 0)\n"
+    )
+    script = tmp_path / "cohflash"
+    script.write_text(probe)
+    as_command = subprocess.run([sys.executable, str(script), "info"], capture_output=True, text=True, check=True)
+    assert as_command.stdout.split() == ["False", "True", "True"]
+    as_library = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert as_library.stdout.split() == ["True", "True", "False"]
+
+
 def test_a_cohflash_process_takes_gpu_memory_on_demand_unless_told_otherwise(monkeypatch):
     """A `cohflash` command's interpreter sets XLA_PYTHON_CLIENT_PREALLOCATE=false before JAX
     starts (reserving three quarters of an H200 cost each full-capture run 1.4 s); a user's own setting

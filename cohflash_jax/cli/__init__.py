@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from ..fileio import OutputSet
-from ..process import cli_input_bytes
+from ..process import cli_input_bytes, resume_garbage_collection
 from ..runtime import (
     CLI_CPU_STREAMS,
     EXECUTABLES,
@@ -114,5 +114,8 @@ def entry() -> None:
     In-process callers (tests, notebooks) call `main`, which returns the exit status."""
     exit_process(main())
 
+
+# the imports are done: collection on again (paused in a `cohflash` process as the package loads)
+resume_garbage_collection()
 
 __all__ = ["COMMANDS", "build_parser", "entry", "main", "run_reconstruct", "summary"]
