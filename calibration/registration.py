@@ -464,6 +464,12 @@ def write_registration(path, reg: Registration) -> Path:
 
 
 # -- register ---------------------------------------------------------------------------------
+def wrong_board(continues: list, found: int) -> bool:
+    """Whether the views say --board is not the board: at least three (and a quarter of the
+    `found` boards) show the pattern continuing past the grid found."""
+    return bool(continues) and len(continues) >= max(3, found // 4)
+
+
 def detect_all(view_files, board: Board, progress: bool):
     """Read and detect every view: (image size, 8-bit images, raw corners, failed {file: reason})."""
     size, depth = None, None
@@ -471,11 +477,12 @@ def detect_all(view_files, board: Board, progress: bool):
     raw = [dict() for _ in view_files.files]
     failed = {}
     continues = []
-    total = sum(len(f) for f in view_files.files)
+    total, seen = sum(len(f) for f in view_files.files), 0
     with tqdm(total=total, unit="view", desc="detecting corners", disable=not progress) as bar:
         for k, files in enumerate(view_files.files):
             for name, path in files.items():
                 bar.update()
+                seen += 1
                 try:
                     img = read_image(path)
                 except RegistrationError as exc:
@@ -502,9 +509,16 @@ def detect_all(view_files, board: Board, progress: bool):
                     failed[str(path)] = (
                         f"the chessboard pattern continues past the {board.cols}x{board.rows} grid found ({side})"
                     )
+                    # refused as soon as the views left could not change the verdict below (a
+                    # wrong --board is otherwise told after every view's slow failed search)
+                    if wrong_board(continues, sum(len(r) for r in raw) + total - seen):
+                        break
                     continue
                 raw[k][name] = corners
-    if continues and len(continues) >= max(3, sum(len(r) for r in raw) // 4):
+            else:
+                continue
+            break
+    if wrong_board(continues, sum(len(r) for r in raw)):
         raise RegistrationError(
             f"--board {board.cols}x{board.rows} does not match the board: in {len(continues)} views the chessboard "
             f"pattern continues past the grid found (e.g. {continues[0]}); count the board's inner corners"
