@@ -5,8 +5,9 @@ They are separate programs, dispatched asynchronously, because XLA's CPU compile
 badly: within one program it recomputed the per-pixel cos/sin of the carrier axis for every
 frame, and computed the rotated sequence straight into the transposed layout, reading I/Q
 with a stride. For long sweeps (`SPLIT_AXIS_MIN_FRAMES`) the carrier axis is a program of its
-own too: fused with I/Q, its moments recomputed I/Q from the frames. Timings of each split:
-docs/performance.md.
+own too: fused with I/Q, its moments recomputed I/Q from the frames. For short sweeps the
+rotation and the inversion are one program (`rotate_and_invert`): there the calls' own cost
+counts, and the fusion costs nothing. Timings of each split: docs/performance.md.
 """
 
 from __future__ import annotations
