@@ -517,7 +517,7 @@ def detect_all(view_files, board: Board, progress: bool):
                 raw[k][name] = corners
             else:
                 continue
-            break
+            break  # the views' loop stopped at a wrong board: so does the folders
     if wrong_board(continues, sum(len(r) for r in raw)):
         raise RegistrationError(
             f"--board {board.cols}x{board.rows} does not match the board: in {len(continues)} views the chessboard "

@@ -73,9 +73,9 @@ def single_threaded_blas_for_cli(argv) -> bool:
 def pause_garbage_collection_for_cli(argv) -> bool:
     """Where this interpreter runs a `cohflash` command, no garbage collection while the
     package and its dependencies are imported (`resume_garbage_collection`). Importing JAX
-    and equinox makes ~10⁶ long-lived objects, and the collector's passes over them as they
-    are made cost ~0.1–0.15 s of each command's start (docs/performance.md). Returns whether
-    collection was paused."""
+    and equinox makes ~2·10⁵ objects the collector tracks, all of them alive for the whole
+    process, and its passes over them as they are made were part of every command's start
+    (docs/performance.md). Returns whether collection was paused."""
     global _PAUSED
     if cli_command(argv) is None or not gc.isenabled():
         return False
