@@ -477,47 +477,42 @@ def detect_all(view_files, board: Board, progress: bool):
     raw = [dict() for _ in view_files.files]
     failed = {}
     continues = []
-    total, seen = sum(len(f) for f in view_files.files), 0
-    with tqdm(total=total, unit="view", desc="detecting corners", disable=not progress) as bar:
-        for k, files in enumerate(view_files.files):
-            for name, path in files.items():
-                bar.update()
-                seen += 1
-                try:
-                    img = read_image(path)
-                except RegistrationError as exc:
-                    failed[str(path)] = str(exc).removeprefix(f"{path}: ")
-                    continue
-                if size is None:
-                    size, depth = (img.shape[1], img.shape[0]), img.dtype
-                if (img.shape[1], img.shape[0]) != size:
-                    raise RegistrationError(
-                        f"{path}: image size {img.shape[1]}×{img.shape[0]} differs from "
-                        f"{size[0]}×{size[1]} of the first image"
-                    )
-                if img.dtype != depth:
-                    raise RegistrationError(f"{path}: bit depth {img.dtype} differs from {depth} of the first image")
-                img8 = to_uint8(img)
-                images8[k][name] = img8
-                corners = find_corners(img8, board, None if img.dtype == np.uint8 else img.astype(np.float32))
-                if corners is None:
-                    failed[str(path)] = "chessboard not found"
-                    continue
-                side = board_continues(img8, corners, board)
-                if side is not None:
-                    continues.append(str(path))
-                    failed[str(path)] = (
-                        f"the chessboard pattern continues past the {board.cols}x{board.rows} grid found ({side})"
-                    )
-                    # refused as soon as the views left could not change the verdict below (a
-                    # wrong --board is otherwise told after every view's slow failed search)
-                    if wrong_board(continues, sum(len(r) for r in raw) + total - seen):
-                        break
-                    continue
-                raw[k][name] = corners
-            else:
+    views = [(k, name, path) for k, files in enumerate(view_files.files) for name, path in files.items()]
+    with tqdm(total=len(views), unit="view", desc="detecting corners", disable=not progress) as bar:
+        for seen, (k, name, path) in enumerate(views, start=1):
+            bar.update()
+            try:
+                img = read_image(path)
+            except RegistrationError as exc:
+                failed[str(path)] = str(exc).removeprefix(f"{path}: ")
                 continue
-            break  # the views' loop stopped at a wrong board: so does the folders
+            if size is None:
+                size, depth = (img.shape[1], img.shape[0]), img.dtype
+            if (img.shape[1], img.shape[0]) != size:
+                raise RegistrationError(
+                    f"{path}: image size {img.shape[1]}×{img.shape[0]} differs from "
+                    f"{size[0]}×{size[1]} of the first image"
+                )
+            if img.dtype != depth:
+                raise RegistrationError(f"{path}: bit depth {img.dtype} differs from {depth} of the first image")
+            img8 = to_uint8(img)
+            images8[k][name] = img8
+            corners = find_corners(img8, board, None if img.dtype == np.uint8 else img.astype(np.float32))
+            if corners is None:
+                failed[str(path)] = "chessboard not found"
+                continue
+            side = board_continues(img8, corners, board)
+            if side is not None:
+                continues.append(str(path))
+                failed[str(path)] = (
+                    f"the chessboard pattern continues past the {board.cols}x{board.rows} grid found ({side})"
+                )
+                # refused as soon as the views left could not change the verdict below (a
+                # wrong --board is otherwise told after every view's slow failed search)
+                if wrong_board(continues, sum(len(r) for r in raw) + len(views) - seen):
+                    break
+                continue
+            raw[k][name] = corners
     if wrong_board(continues, sum(len(r) for r in raw)):
         raise RegistrationError(
             f"--board {board.cols}x{board.rows} does not match the board: in {len(continues)} views the chessboard "
