@@ -131,3 +131,23 @@ def test_short_sweeps_align_statically_and_say_so():
     frames = cf.simulate(cf.planar(effects=NOISE), inst, 4, 4, jax.random.key(0))
     alignment = align_carrier(ReconstructOptions(progress=False), inst, np.asarray(frames).reshape(4, 35, -1))
     assert alignment.mode == "static" and "frames are too few" in alignment.reason
+
+
+def test_the_carrier_axis_without_trigonometry_is_half_the_angle_of_its_moments():
+    """`iq.half_angle` gives cos and sin of ½·atan2(y, x) ∈ (−π/2, π/2], in float64 to a few
+    ulp, on random points and where a branch or cancellation could fail: on the axes, near
+    the negative x axis (r + x cancels), and at the origin (φ = 0, as atan2 gives)."""
+    import jax.numpy as jnp
+
+    from cohflash_jax.estimate.iq import half_angle
+
+    rng = np.random.default_rng(5)
+    edge_x = [0.0, 0.0, 1.0, -1.0, 0.0, -2.0, -2.0, 3.0, 1e-300, -1e6, 5e-8]
+    edge_y = [0.0, 1.0, 0.0, 1e-12, -1.0, 1e-9, -1e-9, -1e-30, 0.0, 1.0, 5e-8]
+    x = np.concatenate([rng.normal(size=20000) * rng.lognormal(0, 3, 20000), edge_x])
+    y = np.concatenate([rng.normal(size=20000) * rng.lognormal(0, 3, 20000), edge_y])
+    c, s = (np.asarray(v) for v in half_angle(jnp.asarray(x), jnp.asarray(y)))
+    phi = 0.5 * np.arctan2(y, x)
+    np.testing.assert_allclose(c, np.cos(phi), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(s, np.sin(phi), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(c * c + s * s, 1.0, rtol=0, atol=1e-15)

@@ -71,12 +71,28 @@ def carrier_axis(i: Float[Array, "N P"], q: Float[Array, "N P"]) -> CarrierAxis:
     sii = jnp.sum(i * i, axis=0) / n - mi * mi
     sqq = jnp.sum(q * q, axis=0) / n - mq * mq
     siq = jnp.sum(i * q, axis=0) / n - mi * mq
-    phase = 0.5 * jnp.arctan2(2 * siq, sii - sqq)
+    c, s = half_angle(sii - sqq, 2 * siq)  # φ = ½·atan2(2 siq, sii − sqq) ∈ (−π/2, π/2]
     # orient the axis so the mean term A·w_0 (which S keeps) comes out positive
-    phase = jnp.where(mi * jnp.cos(phase) + mq * jnp.sin(phase) < 0, phase + jnp.pi, phase)
-    c, s = jnp.cos(phase), jnp.sin(phase)
+    flip = mi * c + mq * s < 0
+    c, s = jnp.where(flip, -c, c), jnp.where(flip, -s, s)
     noise_var = jnp.maximum(s * s * sii + c * c * sqq - 2 * s * c * siq, 0.0) * (n / max(n - 2, 1))
-    return CarrierAxis(c, s, noise_var, phase, jnp.maximum(sii + sqq, 0.0))
+    return CarrierAxis(c, s, noise_var, jnp.arctan2(s, c), jnp.maximum(sii + sqq, 0.0))
+
+
+def half_angle(x, y):
+    """cos φ and sin φ of φ = ½·atan2(y, x) ∈ (−π/2, π/2], without trigonometry: the axis is
+    along (r + x, y) (r = |(x, y)|), or along (y, r − x) where x < 0, which avoids the
+    cancellation in r + x; then turned so that cos φ ≥ 0. (1, 0) where x = y = 0, as atan2
+    gives. A per-pixel atan2, cos and sin are scalar libm calls in XLA's CPU code: a fifth of
+    the 10 Hz carrier-axis program (docs/performance.md)."""
+    r = jnp.hypot(x, y)
+    ax, ay = jnp.where(x >= 0, r + x, y), jnp.where(x >= 0, y, r - x)
+    norm = jnp.hypot(ax, ay)
+    ok = norm > 0
+    c = jnp.where(ok, ax / jnp.where(ok, norm, 1), 1)
+    s = jnp.where(ok, ay / jnp.where(ok, norm, 1), 0)
+    turn = (c < 0) | ((c == 0) & (s < 0))
+    return jnp.where(turn, -c, c), jnp.where(turn, -s, s)
 
 
 def rotate_onto_axis(
