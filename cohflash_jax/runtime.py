@@ -7,7 +7,6 @@ import contextvars
 import ctypes
 import os
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import NoReturn
@@ -71,7 +70,6 @@ def async_filter_jit(fun):
     once per process, and where the executable cache is on (`enable_compilation_cache`) it is
     loaded from disk in later processes without tracing or lowering `fun` at all
     (`ExecutableCache`)."""
-    import concurrent.futures
     import functools
 
     import equinox as eqx
@@ -98,54 +96,15 @@ def async_filter_jit(fun):
         may choose what it traces)."""
         return jax.jit(flat_fun(static_leaves, mask, treedef))
 
-    in_flight = {}  # key → the Future of a program being loaded or compiled in another thread
-    lock = threading.Lock()
-
-    def obtain(key, static_leaves, mask, treedef, signature, arrays, quick):
-        """The program of `key`, loaded or compiled once per process: a thread that asks for
-        one another thread is making (`prepare`) waits for it instead of making it again."""
-        with lock:
-            program = programs.get(key)
-            if program is not None:
-                return program
-            pending = in_flight.get(key)
-            if pending is None:
-                pending = in_flight[key] = concurrent.futures.Future()
-                owner = True
-            else:
-                owner = False
-        if not owner:
-            try:
-                return pending.result()
-            except Exception:  # the other thread failed: this one makes it (and reports its error)
-                return obtain(key, static_leaves, mask, treedef, signature, arrays, quick)
-        try:
-            flat = flat_fun(static_leaves, mask, treedef)
-            program = EXECUTABLES.program(fun, flat, ((static_leaves, mask), treedef, signature), arrays, quick)
-        except BaseException as exc:
-            with lock:
-                in_flight.pop(key, None)
-            pending.set_exception(exc)
-            raise
-        with lock:
-            programs[key] = program
-            in_flight.pop(key, None)
-        pending.set_result(program)
-        return program
-
-    def split(args, kwargs, is_input):
+    @functools.wraps(fun)
+    def call(*args, **kwargs):
         # one flatten of every argument, its leaves split into arrays (the program's inputs)
         # and the rest (static: part of the program's key, so hashable), as `eqx.partition`
         # would split them but without its per-call tree maps (the 10 Hz stream: ~100 calls a map)
         leaves, treedef = jax.tree.flatten((args, tuple(sorted(kwargs.items()))))
-        mask = tuple(map(is_input, leaves))
+        mask = tuple(map(eqx.is_array, leaves))
         arrays = [x for x, m in zip(leaves, mask) if m]
         static_leaves = tuple(x for x, m in zip(leaves, mask) if not m)
-        return arrays, static_leaves, mask, treedef
-
-    @functools.wraps(fun)
-    def call(*args, **kwargs):
-        arrays, static_leaves, mask, treedef = split(args, kwargs, eqx.is_array)
         quick = _QUICK_COMPILE.get()
         if any(isinstance(x, jax.core.Tracer) for x in arrays):  # inside another transformation
             return traced(static_leaves, mask, treedef, quick)(*arrays)
@@ -153,47 +112,12 @@ def async_filter_jit(fun):
         key = (static_leaves, mask, treedef, signature, quick)
         program = programs.get(key)
         if program is None:
-            program = obtain(key, static_leaves, mask, treedef, signature, arrays, quick)
+            flat = flat_fun(static_leaves, mask, treedef)
+            parts = ((static_leaves, mask), treedef, signature)
+            program = programs[key] = EXECUTABLES.program(fun, flat, parts, arrays, quick)
         return program(*arrays)
 
-    def prepare(*args, **kwargs) -> None:
-        """Load or compile the program for arguments like these without running it: arrays,
-        or `jax.ShapeDtypeStruct`s with the sharding (device) the call's arrays will have.
-        A later call with such arrays runs it; one made while it is being made waits for it.
-        Called from a thread, it makes a program while the caller reads its inputs."""
-        is_input = lambda x: eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
-        arrays, static_leaves, mask, treedef = split(args, kwargs, is_input)
-        quick = _QUICK_COMPILE.get()
-        signature = tuple(map(_argument_signature, arrays))
-        obtain((static_leaves, mask, treedef, signature, quick), static_leaves, mask, treedef, signature, arrays, quick)
-
-    call.prepare = prepare
     return call
-
-
-def in_background(work, *args) -> None:
-    """Run `work(*args)` in a daemon thread, in a copy of this thread's context (so that
-    `quick_compile` holds there too), for a speed-up only: whatever it raises is dropped, and
-    the caller does the work itself where it finds it undone. A daemon thread, so a process
-    that ends first does not wait for it."""
-
-    def run():
-        try:
-            context.run(work, *args)
-        except Exception:
-            pass
-
-    context = contextvars.copy_context()
-    threading.Thread(target=run, name=getattr(work, "__name__", "background"), daemon=True).start()
-
-
-def placed_devices(x) -> tuple:
-    """The devices an array argument is on, or a `jax.ShapeDtypeStruct`'s sharding names
-    (none for a host array or an unplaced description)."""
-    if hasattr(x, "devices"):
-        return tuple(x.devices())
-    sharding = getattr(x, "sharding", None)
-    return () if sharding is None else tuple(sharding.device_set)
 
 
 def _argument_signature(x):
@@ -245,15 +169,6 @@ class ExecutableCache:
         self.used: dict[str, None] = {}  # the entries this process loaded or compiled, in order
         self.prefetched: dict = {}  # entry path → the future of its load (`prefetch`)
         self.prefetched_used = 0
-        self.prefetch_started = False  # whether this process started loading a last run's programs
-        self.counting = threading.Lock()
-
-    def count(self, **increments) -> None:
-        """Add to the counters (`loaded`, `compiled`, …) under a lock: programs are made in
-        more than one thread (`async_filter_jit`'s `prepare`)."""
-        with self.counting:
-            for name, value in increments.items():
-                setattr(self, name, getattr(self, name) + value)
 
     def environment(self) -> str:
         """The process-wide half of every key."""
@@ -330,7 +245,7 @@ class ExecutableCache:
         if not path.exists():
             return None
         started = time.perf_counter()
-        devices = [d for x in leaves for d in placed_devices(x)][:1] or None
+        devices = [d for x in leaves for d in getattr(x, "devices", lambda: ())()][:1] or None
         program = self._prefetched_program(path, devices)
         try:
             if program is None:
@@ -339,7 +254,8 @@ class ExecutableCache:
         except Exception:  # a damaged or foreign entry: compiled afresh and replaced
             path.unlink(missing_ok=True)
             return None
-        self.count(loaded=1, load_seconds=time.perf_counter() - started)
+        self.loaded += 1
+        self.load_seconds += time.perf_counter() - started
         return self._checked(program, path, lambda: self._compile(jitted, leaves, path, quick))
 
     @staticmethod
@@ -367,7 +283,7 @@ class ExecutableCache:
             program = future.result()
         except Exception:  # damaged, or for another device: loaded the usual way
             return None
-        self.count(prefetched_used=1)
+        self.prefetched_used += 1
         return program
 
     def prefetch(self, names) -> bool:
@@ -383,7 +299,6 @@ class ExecutableCache:
             return False
         pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="executable-prefetch")
         self.prefetched.update({p: pool.submit(self._deserialize, p) for p in paths})
-        self.prefetch_started = True
         pool.shutdown(wait=False)  # its thread ends with the last load
         return True
 
@@ -446,9 +361,10 @@ class ExecutableCache:
             )
         except Exception:  # e.g. an argument jit accepts but lowering with it does not
             return jitted
+        self.compiled += 1
         if path is not None:
             self._write(path, compiled)
-        self.count(compiled=1, compile_seconds=time.perf_counter() - started)
+        self.compile_seconds += time.perf_counter() - started
         return compiled
 
     def _write(self, path: Path, compiled):
@@ -723,6 +639,7 @@ def exit_process(code: int | None) -> NoReturn:
     stream that cannot be flushed (a closed pipe: Python reports it and sets the status), or
     an interpreter without `atexit._run_exitfuncs`."""
     import atexit
+    import threading
 
     code = 0 if code is None else int(code)
     others = [t for t in threading.enumerate() if t is not threading.current_thread() and not t.daemon]

@@ -9,7 +9,6 @@ import sys
 import textwrap
 
 import numpy as np
-import pytest
 
 RUN = textwrap.dedent(
     """
@@ -339,91 +338,3 @@ def test_a_reconstruct_process_loads_its_last_runs_programs_while_it_imports(tmp
     assert cli_input_bytes(["cohflash", "reconstruct", str(capture), "--out", str(tmp_path / "d1.h5")]) == (
         capture.stat().st_size
     )
-
-
-def scaled(x, factor):
-    """A program for the threads of the test below (its static `factor` makes it new)."""
-    return x * factor
-
-
-def test_a_program_prepared_from_shapes_is_made_once_however_many_threads_ask():
-    """`prepare` with a `jax.ShapeDtypeStruct` placed on the device makes the program a later
-    call with such an array runs: three threads asking at once and the call make it once."""
-    import threading
-    import time
-
-    import jax
-
-    from cohflash_jax.runtime import EXECUTABLES, async_filter_jit
-
-    program = async_filter_jit(scaled)
-    factor = float(time.time_ns() % 1_000_003)  # a program no earlier run has in the cache
-    device = jax.devices()[0]
-    shape = jax.ShapeDtypeStruct((7, 3), np.float32, sharding=jax.sharding.SingleDeviceSharding(device))
-    made = lambda: EXECUTABLES.compiled + EXECUTABLES.loaded
-    before = made()
-    start = threading.Barrier(3)
-
-    def ask():
-        start.wait()
-        program.prepare(shape, factor)
-
-    threads = [threading.Thread(target=ask) for _ in range(3)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    assert made() == before + 1
-    x = np.arange(21, dtype=np.float32).reshape(7, 3)
-    np.testing.assert_array_equal(np.asarray(program(jax.device_put(x, device), factor)), x * factor)
-    assert made() == before + 1, "the call made its program again"
-    program(jax.device_put(x.astype(np.float64), device), factor)
-    assert made() == before + 2, "another dtype shared the prepared program"
-
-
-@pytest.mark.parametrize("frames", [72, 520])
-def test_a_capture_makes_its_programs_once_and_the_inversion_while_its_first_tile_is_read(
-    tmp_path, monkeypatch, frames
-):
-    """`reconstruct_capture` makes the sub-tile programs in a thread (`TileDispatcher.prepare`)
-    before it reads the first tile, the inversion first: the run then makes no other program
-    (short sweeps two, long ones four), the inversion is made off the main thread, and the
-    same pixels reconstructed from memory (no thread) give the same bits."""
-    import threading
-
-    from cohflash_jax.calibration_file import PixelMaps
-    from cohflash_jax.capture import Capture
-    from cohflash_jax.cli import main
-    from cohflash_jax.reconstruct import ReconstructOptions, api, reconstruct_array, reconstruct_capture
-    from cohflash_jax.runtime import EXECUTABLES, ExecutableCache
-
-    path = tmp_path / "c.h5"
-    steps = str(frames)
-    assert main(["simulate", "planar", "--size", "3x5", "--steps", steps, "--out", str(path), "--quiet"]) == 0
-    made = []
-    original = ExecutableCache.program
-
-    def program(self, fun, *args, **kwargs):
-        made.append((fun.__name__, threading.current_thread() is threading.main_thread()))
-        return original(self, fun, *args, **kwargs)
-
-    monkeypatch.setattr(ExecutableCache, "program", program)
-    monkeypatch.setattr(
-        api, "QUICK_COMPILE_MAX_PIXELS", 0
-    )  # compiled as a full frame's (small captures skip the thread)
-    before = EXECUTABLES.compiled + EXECUTABLES.loaded
-    options = ReconstructOptions(method="dft", progress=False)  # quick to compile at full optimisation
-    with Capture(path) as capture:
-        out = reconstruct_capture(capture, options)
-        names = [name for name, _ in made]
-        expected = 2 if frames < 512 else 4
-        assert len(names) == len(set(names)) == expected == EXECUTABLES.compiled + EXECUTABLES.loaded - before, made
-        assert ("rotate_and_invert" if frames < 512 else "_invert_sequence", False) in made
-        # the same pixels through the same programs from memory (no thread, no file)
-        maps, saturation = PixelMaps(capture.dark), capture.saturation_dn
-        again = reconstruct_array(
-            capture.frames[()], capture.instrument(), options, maps=maps, saturation_dn=saturation
-        )
-    assert len(made) == expected, "reconstructing from memory made programs of its own"
-    for name in ("depth_m", "sigma_m", "fit_status"):
-        np.testing.assert_array_equal(out.outputs[name], again[name])

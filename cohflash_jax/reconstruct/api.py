@@ -19,7 +19,7 @@ from ..estimate.drift import CarrierAlignment, choose_carrier_alignment
 from ..fisher import crlb_at_unit_snr_m
 from ..instrument import Instrument
 from ..progress import progress_bar
-from ..runtime import EXECUTABLES, QUICK_COMPILE_MAX_PIXELS, quick_compile, retain_freed_memory
+from ..runtime import QUICK_COMPILE_MAX_PIXELS, quick_compile, retain_freed_memory
 from .engine import BlockReader, TileDispatcher, sub_tile_pixels
 from .plan import TilePlan, build_plan, frequency_path
 from .policy import ReconstructOptions
@@ -172,16 +172,6 @@ class TileSource:
         if self.reader is not None:
             self.reader.hold_last(held)
 
-    def input_shapes(self, num_frames: int) -> tuple:
-        """(frames, data status, dark, gain) of every tile as `jax.ShapeDtypeStruct`s (None
-        where `inputs` gives None), known before any tile is read."""
-        p = self.rows * self.w
-        spec = lambda shape, dtype: jax.ShapeDtypeStruct(shape, np.dtype(dtype))
-        maps = tuple(None if arr is None else spec((4, p), np.float32) for arr in (self.dark, self.gain))
-        if self.registered is not None:
-            return (spec((4, num_frames, p), np.float32), spec((p,), np.int8)) + maps
-        return (spec((4, num_frames, p), self.reader.dtype), None) + maps
-
     def inputs(self, r0: int) -> tuple:
         """(r1, frames (4, N, P), data status (P,) or None, dark (4, P), gain (4, P)) of the tile at row r0."""
         r1 = min(self.h, r0 + self.rows)
@@ -249,33 +239,25 @@ def reconstruct_capture(
             band[r0 - band_start : r1 - band_start] = arr
         bar.update((r1 - r0) * w)
 
-    # "auto" carrier alignment looks at the first tile: its survey (NumPy) runs in a thread
-    # while the first tile is dispatched as if static, which "auto" finds in most captures;
-    # where it finds a drift, the tile is dispatched again with it, before the next tile is
-    # read over its buffer. Every other alignment is known before any tile is read
-    auto = alignment is None and options.carrier == "auto"
-    if alignment is None:
-        alignment = choose_carrier_alignment("static" if auto else options.carrier)
+    # the first tile is read before the plan is made: "auto" carrier alignment looks at it.
+    # Its survey (NumPy) runs in a thread while the first tile is dispatched as if static,
+    # which "auto" finds in most captures; where it finds a drift, the tile is dispatched
+    # again with it, before the next tile is read over its buffer
+    first = source.inputs(band_start)
+    survey = None
+    if alignment is None and options.carrier == "auto":
+        pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="carrier-survey")
+        survey = pool.submit(align_carrier, options, instrument, first[1], first[3], first[4])
+        pool.shutdown(wait=False)  # its thread ends with the survey
+        alignment = choose_carrier_alignment("static")
+    elif alignment is None:
+        alignment = align_carrier(options, instrument, first[1], first[3], first[4])
     sub_px = sub_tile_pixels(rows * w, n)
     plan, dispatcher = plan_and_dispatcher(instrument, options, saturation, alignment, sub_px)
     total = (band_end - band_start) * w
     bar = progress_bar(total=total, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True)
     # the whole capture's size decides, so that every band of a distributed run decides alike
-    quick = h * w <= QUICK_COMPILE_MAX_PIXELS
-    with bar, quick_compile(quick):
-        # the programs are made in a thread while the first tile is read: on a first run the
-        # inversion's compile, seconds long, then overlaps the read and the smaller compiles.
-        # Not where the read is short (a small capture, compiled quick: the thread's extra
-        # tracing costs more than the overlap gives) or the programs are already being loaded
-        # (a CLI run that found its last run's programs: `runtime.prefetch_for_cli`)
-        if not quick and not EXECUTABLES.prefetch_started:
-            dispatcher.prepare_in_background(*source.input_shapes(n))
-        first = source.inputs(band_start)
-        survey = None
-        if auto:
-            pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="carrier-survey")
-            survey = pool.submit(align_carrier, options, instrument, first[1], first[3], first[4])
-            pool.shutdown(wait=False)  # its thread ends with the survey
+    with bar, quick_compile(h * w <= QUICK_COMPILE_MAX_PIXELS):
         pending = None
         for r0 in range(band_start, band_end, rows):
             r1, block, data_status, d, g = first if r0 == band_start else source.inputs(r0)

@@ -17,9 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..capture import Capture
-from ..runtime import QUICK_COMPILE_MAX_PIXELS, in_background, place_on_devices, stream_devices
+from ..runtime import QUICK_COMPILE_MAX_PIXELS, place_on_devices, stream_devices
 from .plan import TilePlan, program_plan
-from .programs import prepare_tile, process_tile
+from .programs import process_tile
 
 # CPU: the uint16 frames of a sub-tile (4·N·2 bytes a pixel) fit in ~12 MiB, so its I/Q,
 # moment and FFT passes run from cache; a tile gives at least `MIN_PIECES` sub-tiles to overlap
@@ -98,32 +98,6 @@ class TileDispatcher:
         self.devices = stream_devices()
         carrier = None if carrier_phase_rad is None else jnp.asarray(carrier_phase_rad)
         self.placed = place_on_devices((program_plan(plan), carrier), self.devices)
-        self.prepared = False  # whether `prepare_in_background` ran
-
-    def prepare_in_background(self, frames, dark=None, data_status=None, gain=None) -> None:
-        """`prepare` in a thread (`runtime.in_background`), once per dispatcher."""
-        if not self.prepared:
-            self.prepared = True
-            in_background(self.prepare, frames, dark, data_status, gain)
-
-    def prepare(self, frames, dark=None, data_status=None, gain=None) -> None:
-        """Load or compile the programs of tiles like these (`jax.ShapeDtypeStruct`s of a
-        tile's host arrays, as `dispatch` takes them) on every stream device, without running
-        them (`programs.prepare_tile`)."""
-        p = frames.shape[-1]
-        sub = self.sub_px or p
-
-        def piece(x, device):
-            if x is None:
-                return None
-            sharding = jax.sharding.SingleDeviceSharding(device)
-            return jax.ShapeDtypeStruct(x.shape[:-1] + (sub,), x.dtype, sharding=sharding)
-
-        for k in range(min(-(-p // sub), len(self.devices))):
-            device = self.devices[k] if len(self.devices) > 1 else jax.devices()[0]
-            plan, carrier = self.placed[k % len(self.placed)]
-            pieces = [piece(x, device) for x in (frames, dark, data_status, gain)]
-            prepare_tile(plan, *pieces, carrier)
 
     def dispatch(self, frames, dark=None, data_status=None, gain=None) -> PendingTile:
         """Dispatch a tile (4, N, P) with its per-pixel maps (4, P) and upstream status (P,)."""

@@ -39,31 +39,6 @@ def process_tile(plan: TilePlan, frames, dark, data_status=None, gain=None, carr
     return rotate_and_invert(plan, i, q, c, s, noise_var, total_var, flags, data_status)
 
 
-def prepare_tile(plan: TilePlan, frames, dark, data_status=None, gain=None, carrier_phase_rad=None) -> None:
-    """Load or compile `process_tile`'s programs for sub-tiles like this one without running
-    them: each array argument a `jax.ShapeDtypeStruct` with the sharding (device) the
-    sub-tile's arrays will have (the plan's own arrays placed there). The inversion, much the
-    longest to compile, comes first, so that run in a thread it compiles while the caller
-    reads its first tile and makes the smaller programs itself."""
-    sharding = frames.sharding
-    placed = lambda tree: jax.tree.map(
-        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding, weak_type=x.weak_type), tree
-    )
-    iq_args = (plan.iq, frames, dark, gain, carrier_phase_rad)
-    if frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES:
-        i, q, flags = placed(jax.eval_shape(iq_and_checks, *iq_args))
-        c, s, noise_var, total_var = placed(jax.eval_shape(carrier_axis_program, i, q))
-        r = placed(jax.eval_shape(rotate_program, i, q, c, s))
-        invert_sequence.prepare(plan, r, noise_var, total_var, flags, data_status)
-        iq_and_checks.prepare(*iq_args)
-        carrier_axis_program.prepare(i, q)
-        rotate_program.prepare(i, q, c, s)
-    else:
-        i, q, axis, flags = placed(jax.eval_shape(iq_and_carrier_axis, *iq_args))
-        rotate_and_invert.prepare(plan, i, q, *axis, flags, data_status)
-        iq_and_carrier_axis.prepare(*iq_args)
-
-
 rotate_program = async_filter_jit(rotate_onto_axis)
 
 
