@@ -79,6 +79,7 @@ enable_compilation_cache()
 from cohflash_jax.capture import Capture
 from cohflash_jax.cli import run_reconstruct
 from cohflash_jax.reconstruct import ReconstructOptions
+from cohflash_jax.reconstruct.api import tile_rows
 from cohflash_jax.reconstruct.engine import BlockReader, sub_tile_pixels
 from cohflash_jax.reconstruct.plan import build_plan
 from cohflash_jax.reconstruct import programs
@@ -95,7 +96,7 @@ write_depth(out, result.outputs, result.meta, {})
 write = time.perf_counter() - t
 with Capture(capture) as cap:
     n, h, w = cap.shape
-    rows = options.tile_rows
+    rows = tile_rows(cap, options)
     reader = BlockReader(cap, rows)
     t = time.perf_counter()
     for r0 in range(0, h, rows):

@@ -369,3 +369,32 @@ def test_a_full_frame_sub_tile_fits_only_its_detected_pixels_where_they_are_few(
     assert detected.mean() > 0.9
     for a, b in zip(jax.tree.leaves(alone), jax.tree.leaves(whole)):
         same(a, b, "every pixel fitted")
+
+
+def test_a_short_sweep_is_streamed_in_tiles_of_many_rows_to_the_same_bits(tmp_path):
+    """By default a tile holds whole 32-row chunks up to `TILE_FRAME_BYTES` of frames: a long
+    sweep 32 rows, a short one its whole frame (the 10 Hz mode's 256 rows in one tile, not 8),
+    an explicit `tile_rows` as given; never more than the height. Tiling never changes a
+    pixel: a 70-row, 35-frame capture in one tile and in 32-row tiles gives the same bits."""
+    from cohflash_jax.capture import Capture
+    from cohflash_jax.reconstruct import reconstruct_capture
+    from cohflash_jax.reconstruct.policy import TILE_FRAME_BYTES
+    from cohflash_jax.simulate import simulate_to_file
+
+    auto = ReconstructOptions(progress=False)
+    assert auto.rows_per_tile((3000, 256, 320)) == 32
+    assert auto.rows_per_tile((35, 256, 320)) == 256
+    assert auto.rows_per_tile((35, 2048, 2048)) == 96 and 4 * 35 * 2048 * 2 * 96 <= TILE_FRAME_BYTES
+    assert auto.rows_per_tile((3000, 16, 16)) == 16
+    assert ReconstructOptions(tile_rows=8).rows_per_tile((35, 256, 320)) == 8
+    inst = cf.Instrument.ten_hz_mode()
+    path = tmp_path / "short.h5"
+    scene = cf.from_arrays(np.linspace(0.5, 3.0, 70 * 12).reshape(70, 12), np.full((70, 12), 0.8))
+    simulate_to_file(path, scene, inst, 70, 12, progress=False)
+    with Capture(path) as capture:
+        assert auto.rows_per_tile(capture.shape) == 70
+        whole = reconstruct_capture(capture, auto).outputs
+        chunked = reconstruct_capture(capture, dataclasses.replace(auto, tile_rows=32)).outputs
+    assert whole["valid"].mean() > 0.9
+    for name in ("depth_m", "sigma_m", "fit_status", "snr"):
+        np.testing.assert_array_equal(whole[name], chunked[name])

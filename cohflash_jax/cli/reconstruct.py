@@ -10,7 +10,13 @@ import numpy as np
 from ..estimate import METHODS
 from ..estimate.detection import DEFAULT_FALSE_ALARM
 from ..estimate.drift import CARRIER_ALIGNMENTS
-from ..reconstruct.policy import DEFAULT_MAX_FIT_CHI2, DEFAULT_SNR_THRESHOLD_DB, DEFAULT_TILE_ROWS, ReconstructOptions
+from ..reconstruct.policy import (
+    DEFAULT_MAX_FIT_CHI2,
+    DEFAULT_SNR_THRESHOLD_DB,
+    DEFAULT_TILE_ROWS,
+    TILE_FRAME_BYTES,
+    ReconstructOptions,
+)
 from ..status import Status
 from .common import HelpFormatter, add_quiet, add_scheduler_options, number_in, provenance, range_mm
 
@@ -70,8 +76,9 @@ def add_reconstruction_options(r) -> None:
     r.add_argument(
         "--tile-rows",
         type=number_in(1, 10**6, "tile rows", False, True),
-        default=DEFAULT_TILE_ROWS,
-        help="rows per streamed tile (memory vs speed; 32 matches the chunking cohflash writes)",
+        default=None,
+        help=f"rows per streamed tile (memory vs speed; default: {DEFAULT_TILE_ROWS}, the chunking cohflash writes, or "
+        f"more for short sweeps, up to {TILE_FRAME_BYTES // 2**20} MB of frames a tile)",
     )
     r.add_argument(
         "--snr-threshold-db",

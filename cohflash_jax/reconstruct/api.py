@@ -191,13 +191,18 @@ def calibrated_inputs(capture: Capture, instrument, maps):
     return maps.apply(instrument), maps
 
 
+def tile_rows(capture: Capture, options: ReconstructOptions) -> int:
+    """Rows per streamed tile of `capture` (`ReconstructOptions.rows_per_tile`)."""
+    return options.rows_per_tile(capture.shape, capture.frames.dtype.itemsize)
+
+
 def capture_alignment(
     capture: Capture, options: ReconstructOptions, instrument=None, *, maps=None, registration_maps=None
 ) -> CarrierAlignment:
     """The carrier alignment `reconstruct_capture` chooses for this capture (decided on its
     first tile): a distributed run decides it once and gives it to every band."""
     instrument, maps = calibrated_inputs(capture, instrument, maps)
-    source = TileSource(capture, maps, registration_maps, min(options.tile_rows, capture.shape[1]))
+    source = TileSource(capture, maps, registration_maps, tile_rows(capture, options))
     _, block, _, dark, gain = source.inputs(0)
     return align_carrier(options, instrument, block, dark, gain)
 
@@ -216,14 +221,14 @@ def reconstruct_capture(
     the capture's own, `Capture.instrument`). `maps`: per-pixel offsets and gains (default:
     the capture's dark frame); `registration_maps`: three (map_x, map_y) arrays (H, W) placing
     CCDs 2–4 on CCD 1's grid. `row_band` (r0, r1): those rows only (r0 a multiple of
-    `options.tile_rows`, so the tiles, and the results, are the whole capture's);
+    `tile_rows`, so the tiles, and the results, are the whole capture's);
     `alignment`: the carrier alignment to use (default: decided on the first tile)."""
     retain_freed_memory()
     n, h, w = capture.shape
     # registered tiles arrive as float32 with saturation judged upstream on the source pixels
     saturation = None if registration_maps is not None else capture.saturation_dn
     instrument, maps = calibrated_inputs(capture, instrument, maps)
-    rows = min(options.tile_rows, h)
+    rows = tile_rows(capture, options)
     band_start, band_end = (0, h) if row_band is None else row_band
     if band_start % rows or not 0 <= band_start < band_end <= h:
         raise ValueError(f"row band {band_start}:{band_end} must start on a tile of {rows} rows and lie in 0:{h}")

@@ -22,7 +22,7 @@ import numpy as np
 from ..capture import Capture, CaptureError
 from ..estimate.drift import CarrierAlignment
 from ..progress import progress_bar
-from .api import FileSetup, Reconstruction, open_and_reconstruct
+from .api import FileSetup, Reconstruction, open_and_reconstruct, tile_rows
 from .policy import ReconstructOptions
 
 # a task that raises (a read error on a network file system) is run again this many times; a
@@ -121,7 +121,7 @@ def reconstruct_on_dask(
         files = FileSetup.load(cap, calibration_path, registration_path)
         alignment = files.alignment(cap, options)
         _, h, w = cap.shape
-    rows = min(options.tile_rows, h)
+        rows = tile_rows(cap, options)
     band_rows = band_rows or band_rows_for(h, rows, sum(client.nthreads().values()))
     if band_rows % rows:
         raise ValueError(f"band rows ({band_rows}) must be a multiple of the tile rows ({rows})")

@@ -27,6 +27,10 @@ DEFAULT_WINDOW_BINS = 17
 DEFAULT_MAX_STEPS = 16
 DEFAULT_TRACK_WINDOW_FRAMES = DRIFT_WINDOW_FRAMES
 DEFAULT_TILE_ROWS = 32  # = the capture writer's chunk rows: each chunk is read once
+# A streamed tile holds more than `DEFAULT_TILE_ROWS` rows where its frames stay within this:
+# a short sweep's whole frame (the 10 Hz mode: 23 MB) is one tile, dispatched in sub-tiles of
+# the full size (`engine.sub_tile_pixels`) instead of 32-row pieces of a quarter of it
+TILE_FRAME_BYTES = 64 * 2**20
 
 
 def snr_threshold_margin(num_frames: int) -> float:
@@ -56,7 +60,7 @@ class ReconstructOptions:
     method: str = "ml"
     carrier: str = "auto"  # `estimate.drift.CARRIER_ALIGNMENTS`: auto, static or tracked
     track_window_frames: int = DEFAULT_TRACK_WINDOW_FRAMES
-    tile_rows: int = DEFAULT_TILE_ROWS
+    tile_rows: int | None = None  # rows per streamed tile; None: `rows_per_tile` chooses
     window_bins: int = DEFAULT_WINDOW_BINS
     max_steps: int = DEFAULT_MAX_STEPS
     snr_threshold_db: float = DEFAULT_SNR_THRESHOLD_DB
@@ -73,7 +77,7 @@ class ReconstructOptions:
             raise ValueError(f"carrier must be one of {', '.join(CARRIER_ALIGNMENTS)}, got {self.carrier!r}")
         if self.dtype not in ("float32", "float64"):
             raise ValueError("dtype must be float32 or float64")
-        if self.tile_rows < 1:
+        if self.tile_rows is not None and self.tile_rows < 1:
             raise ValueError("tile_rows must be ≥ 1")
         if not self.min_depth_m >= 0:
             raise ValueError(f"min_depth_m must be ≥ 0, got {self.min_depth_m}")
@@ -93,6 +97,17 @@ class ReconstructOptions:
                 f"window_bins (≥ 3), max_steps (≥ 1) and track_window_frames (≥ 3) out of range: "
                 f"{self.window_bins}, {self.max_steps}, {self.track_window_frames}"
             )
+
+    def rows_per_tile(self, shape: tuple[int, int, int], itemsize: int = 2) -> int:
+        """Rows per streamed tile of a capture of `shape` (frames, height, width) stored with
+        `itemsize` bytes a value: `tile_rows` where given, else whole multiples of
+        `DEFAULT_TILE_ROWS` (the writer's chunk rows) holding at most `TILE_FRAME_BYTES` of
+        frames, at least one; never more than the height."""
+        n, h, w = shape
+        if self.tile_rows is not None:
+            return min(self.tile_rows, h)
+        chunk_bytes = 4 * n * w * itemsize * DEFAULT_TILE_ROWS
+        return min(h, DEFAULT_TILE_ROWS * max(1, TILE_FRAME_BYTES // max(1, chunk_bytes)))
 
 
 class ValidityPolicy(eqx.Module):
