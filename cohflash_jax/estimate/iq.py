@@ -83,8 +83,8 @@ def half_angle(x, y):
     """cos φ and sin φ of φ = ½·atan2(y, x) ∈ (−π/2, π/2], without trigonometry: the axis is
     along (r + x, y) (r = |(x, y)|), or along (y, r − x) where x < 0, which avoids the
     cancellation in r + x; then turned so that cos φ ≥ 0. (1, 0) where x = y = 0, as atan2
-    gives. A per-pixel atan2, cos and sin are scalar libm calls in XLA's CPU code: a fifth of
-    the 10 Hz carrier-axis program (docs/performance.md)."""
+    gives. A per-pixel atan2, cos and sin are scalar libm calls in XLA's CPU code: about a
+    quarter of the 10 Hz carrier-axis program (docs/performance.md)."""
     r = jnp.hypot(x, y)
     ax, ay = jnp.where(x >= 0, r + x, y), jnp.where(x >= 0, y, r - x)
     norm = jnp.hypot(ax, ay)
