@@ -478,14 +478,17 @@ def use_cpu_streams(count: int = CLI_CPU_STREAMS) -> int:
     simulation its frame chunks (`stream_devices`), so that several programs run at once.
     Every program is compiled once per device. Takes effect only before JAX's first
     computation in the process (the CLI calls it first thing); afterwards it changes nothing.
-    Returns the number of CPU devices in force."""
+    Returns the number of CPU devices in force (0 where `JAX_PLATFORMS` leaves the CPU out)."""
     import jax
 
     try:
         jax.config.update("jax_num_cpu_devices", int(count))
     except RuntimeError:  # JAX already initialised its backends: keep what it has
         pass
-    return len(jax.devices("cpu"))
+    try:
+        return len(jax.devices("cpu"))
+    except RuntimeError:  # JAX_PLATFORMS leaves the CPU out (e.g. "cuda"): no CPU devices
+        return 0
 
 
 def stream_devices() -> list:

@@ -394,3 +394,20 @@ def test_a_cohflash_process_takes_gpu_memory_on_demand_unless_told_otherwise(mon
     monkeypatch.setenv("XLA_PYTHON_CLIENT_PREALLOCATE", "true")
     assert not gpu_memory_on_demand_for_cli(["/venv/bin/cohflash", "/venv/bin/cohflash", "simulate", "traffic"])
     assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "true"
+
+
+def test_a_platform_list_without_the_cpu_gives_no_cpu_streams_not_an_error(monkeypatch):
+    """With `JAX_PLATFORMS=cuda` JAX has no CPU backend, and asking for its CPU devices raises
+    ("Unknown backend cpu"): `use_cpu_streams`, which every `cohflash` command calls first,
+    reports none instead of ending the command (seen on a lent GPU machine)."""
+    import jax
+
+    from cohflash_jax.runtime import use_cpu_streams
+
+    def devices(backend=None):
+        if backend == "cpu":
+            raise RuntimeError("Unknown backend cpu. Available backends are ['cuda']")
+        return []
+
+    monkeypatch.setattr(jax, "devices", devices)
+    assert use_cpu_streams(1) == 0
