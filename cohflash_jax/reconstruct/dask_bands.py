@@ -91,10 +91,11 @@ class DaskRun:
         )
 
 
-def band_rows_for(height: int, tile_rows: int, num_threads: int) -> int:
-    """Rows per band: whole tiles, about `BANDS_PER_WORKER` bands a worker thread."""
-    tiles = math.ceil(height / tile_rows)
-    return tile_rows * max(1, math.ceil(tiles / (BANDS_PER_WORKER * max(1, num_threads))))
+def band_rows_for(height: int, rows_per_tile: int, num_threads: int) -> int:
+    """Rows per band: whole tiles of `rows_per_tile` rows, about `BANDS_PER_WORKER` bands a
+    worker thread."""
+    tiles = math.ceil(height / rows_per_tile)
+    return rows_per_tile * max(1, math.ceil(tiles / (BANDS_PER_WORKER * max(1, num_threads))))
 
 
 def reconstruct_on_dask(
