@@ -30,7 +30,8 @@ def process_tile(plan: TilePlan, frames, dark, data_status=None, gain=None, carr
     `dark` (4, P): per-pixel offsets (DN); `gain` (4, P): per-pixel gains relative to the
     hybrid's global ones; `data_status` (P,) int8: codes found upstream (e.g. registration);
     `carrier_phase_rad` (N,): a known carrier drift common to all pixels, removed first.
-    Three or four programs, dispatched asynchronously (none waits for its result)."""
+    Four programs for a long sweep, two for a short one (`SPLIT_AXIS_MIN_FRAMES`), dispatched
+    asynchronously (none waits for its result)."""
     if frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES:
         i, q, flags = iq_and_checks(plan.iq, frames, dark, gain, carrier_phase_rad)
         c, s, noise_var, total_var = carrier_axis_program(i, q)
