@@ -27,6 +27,19 @@ XLA_CACHE_MAX_BYTES = 512 * 2**20
 # most of its time and the program's speed hardly counts (docs/performance.md)
 _QUICK_COMPILE: contextvars.ContextVar[bool] = contextvars.ContextVar("quick_compile", default=False)
 QUICK_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
+# On the CPU a quick program is also emitted by XLA's older loop emitters: the fusion emitters'
+# own lowering was most of the quick compile (the ML inversion of a 64-pixel capture: 4.6–5.2
+# CPU-s against 1.4–1.9). Not for optimised programs, which the fusion emitters make faster
+# (docs/performance.md); and the loop emitters repeat an operand for each read of it, which only
+# a program like ours, whose compile the tests time as they run it, can be trusted with
+QUICK_COMPILE_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+
+def quick_compile_options(platform: str) -> dict:
+    """XLA's options for a quick program (`quick_compile`) on `platform` ("cpu", "gpu", …)."""
+    return QUICK_COMPILE_OPTIONS | (QUICK_COMPILE_CPU_OPTIONS if platform == "cpu" else {})
+
+
 # work on at most this many pixels (a region of interest, a test's capture, the pixels a
 # posterior or a calibration fits) runs its programs once or twice, so they are compiled for a
 # short compile; larger work for speed
@@ -347,7 +360,9 @@ class ExecutableCache:
 
     def _compile(self, jitted, leaves, path: Path | None, quick: bool = False):
         """Compile `jitted` for these leaves and write the executable to `path` (None: kept in
-        this process only); `quick`: at XLA's lowest optimisation level."""
+        this process only); `quick`: for a short compile (`quick_compile_options`)."""
+        import jax
+
         started = time.perf_counter()
         try:
             # an executable that came from JAX's own cache serialises without its kernels
@@ -356,9 +371,10 @@ class ExecutableCache:
             # (how many buffers a buffer-assignment dump lists) with a value of its own gives
             # it a key of its own in that cache
             options = {"xla_debug_buffer_assignment_show_max": 1_000_000 + time.monotonic_ns() % 1_000_000_000}
-            compiled = jitted.lower(*leaves).compile(
-                compiler_options=options | (QUICK_COMPILE_OPTIONS if quick else {})
-            )
+            if quick:
+                platform = next((d.platform for x in leaves for d in getattr(x, "devices", lambda: ())()), None)
+                options |= quick_compile_options(platform or jax.default_backend())
+            compiled = jitted.lower(*leaves).compile(compiler_options=options)
         except Exception:  # e.g. an argument jit accepts but lowering with it does not
             return jitted
         self.compiled += 1
