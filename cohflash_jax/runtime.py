@@ -22,16 +22,17 @@ _applied = False
 # own (`ExecutableCache.MAX_BYTES`)
 XLA_CACHE_MAX_BYTES = 512 * 2**20
 
-# Programs compiled inside `quick_compile()` are compiled at XLA's lowest optimisation level:
-# a small capture (a region of interest) runs each program once or twice, so the compile is
+# Programs compiled inside `quick_compile()` are compiled at XLA's lowest optimisation level
+# (`quick_compile_options`): a small capture (a region of interest) runs each program once or twice, so the compile is
 # most of its time and the program's speed hardly counts (docs/performance.md)
 _QUICK_COMPILE: contextvars.ContextVar[bool] = contextvars.ContextVar("quick_compile", default=False)
 QUICK_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
 # On the CPU a quick program is also emitted by XLA's older loop emitters: the fusion emitters'
-# own lowering was most of the quick compile (the ML inversion of a 64-pixel capture: 4.6–5.2
-# CPU-s against 1.4–1.9). Not for optimised programs, which the fusion emitters make faster
-# (docs/performance.md); and the loop emitters repeat an operand for each read of it, which only
-# a program like ours, whose compile the tests time as they run it, can be trusted with
+# own lowering (MLIR, kernel by kernel) was most of a quick compile, even at the lowest level.
+# Not for optimised programs, whose code the fusion emitters make faster. The loop emitters
+# repeat an operand for each read of it, so a long chain of steps each reading its input twice
+# compiles in time doubling with each step: fit for the package's own programs, which the
+# suite compiles, not for arbitrary ones (docs/performance.md)
 QUICK_COMPILE_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 

@@ -76,9 +76,9 @@ def test_a_static_half_without_stable_text_stays_in_memory():
 
 
 def test_quick_compiled_programs_are_kept_apart_and_agree_with_optimised_ones():
-    """A region of interest is compiled at XLA's lowest optimisation level (`quick_compile`):
-    its programs have entries of their own, and its depths agree with the optimised
-    programs' to far below σ."""
+    """A region of interest is compiled for a short compile (`quick_compile`: XLA's lowest
+    optimisation level, on the CPU through its loop emitters): its programs have entries of
+    their own, and its depths agree with the optimised programs' to far below σ."""
     import jax
 
     import cohflash_jax as cf
