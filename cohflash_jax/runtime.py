@@ -41,6 +41,28 @@ def quick_compile_options(platform: str) -> dict:
     return QUICK_COMPILE_OPTIONS | (QUICK_COMPILE_CPU_OPTIONS if platform == "cpu" else {})
 
 
+# XLA options a compile refused as unknown in this process (`compile_lowered`)
+UNKNOWN_XLA_OPTIONS: set[str] = set()
+
+
+def compile_lowered(lowered, options: dict):
+    """`lowered` (a `jax.jit(...).lower(...)`) compiled with XLA's `options`, less any this
+    XLA does not know. Another jaxlib may drop an option (jaxlib 0.11.2 has no switch for the
+    loop emitters of `QUICK_COMPILE_CPU_OPTIONS`): the program is then compiled without it,
+    once found out for the whole process, rather than not compiled ahead (and not cached)."""
+    import re
+
+    while True:
+        known = {k: v for k, v in options.items() if k not in UNKNOWN_XLA_OPTIONS}
+        try:
+            return lowered.compile(compiler_options=known)
+        except Exception as error:
+            unknown = re.search(r"No such compile option: '(\w+)'", str(error))
+            if unknown is None or unknown.group(1) not in known:
+                raise
+            UNKNOWN_XLA_OPTIONS.add(unknown.group(1))
+
+
 # work on at most this many pixels (a region of interest, a test's capture, the pixels a
 # posterior or a calibration fits) runs its programs once or twice, so they are compiled for a
 # short compile; larger work for speed
@@ -375,7 +397,7 @@ class ExecutableCache:
             if quick:
                 platform = next((d.platform for x in leaves for d in getattr(x, "devices", lambda: ())()), None)
                 options |= quick_compile_options(platform or jax.default_backend())
-            compiled = jitted.lower(*leaves).compile(compiler_options=options)
+            compiled = compile_lowered(jitted.lower(*leaves), options)
         except Exception:  # e.g. an argument jit accepts but lowering with it does not
             return jitted
         self.compiled += 1

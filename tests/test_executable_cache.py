@@ -338,3 +338,24 @@ def test_a_reconstruct_process_loads_its_last_runs_programs_while_it_imports(tmp
     assert cli_input_bytes(["cohflash", "reconstruct", str(capture), "--out", str(tmp_path / "d1.h5")]) == (
         capture.stat().st_size
     )
+
+
+def test_an_option_this_xla_does_not_know_is_left_out_not_the_compile():
+    """Another jaxlib may not know an option of `quick_compile_options` (jaxlib 0.11.2 has no
+    switch for the loop emitters): the program still compiles ahead, without it, and the option
+    is left out of the process's later compiles; an option XLA does know is kept, and other
+    errors still raise."""
+    import jax
+    import jax.numpy as jnp
+    import pytest
+
+    from cohflash_jax import runtime
+
+    lowered = jax.jit(lambda x: jnp.sin(x) * 2.0).lower(jnp.arange(4.0))
+    unknown = "xla_cpu_an_option_no_xla_has"
+    compiled = runtime.compile_lowered(lowered, {unknown: True, "xla_backend_optimization_level": 0})
+    np.testing.assert_allclose(np.asarray(compiled(jnp.arange(4.0))), 2 * np.sin(np.arange(4.0)))
+    assert unknown in runtime.UNKNOWN_XLA_OPTIONS
+    assert "xla_backend_optimization_level" not in runtime.UNKNOWN_XLA_OPTIONS
+    with pytest.raises(Exception, match="xla_backend_optimization_level"):  # a known option's bad value
+        runtime.compile_lowered(lowered, {"xla_backend_optimization_level": "not a level"})

@@ -455,7 +455,7 @@ def test_straggler_pass_gives_each_pixel_its_uninterrupted_polish():
     from cohflash_jax.estimate.window_ml import grid_for, refine_ml_uniform
     from cohflash_jax.estimate.window_model import UniformModel, window_tables
     from cohflash_jax.modulator import MZM
-    from cohflash_jax.runtime import quick_compile, quick_compile_options
+    from cohflash_jax.runtime import compile_lowered, quick_compile, quick_compile_options
 
     n, start_hz, step_hz, width = 3000, 0.1e9, 5.9e9 / 3000, 17
     model = UniformModel(start_hz, step_hz, jnp.asarray(MZM().weights(3e9)), num_frames=n)
@@ -491,7 +491,7 @@ def test_straggler_pass_gives_each_pixel_its_uninterrupted_polish():
             first_pass_steps=first,
         )
         with quick_compile():
-            return jax.jit(refine).lower().compile(compiler_options=quick_compile_options(jax.default_backend()))()
+            return compile_lowered(jax.jit(refine).lower(), quick_compile_options(jax.default_backend()))()
 
     whole, resumed = fit(16), fit(1)
     steps = np.asarray(whole.num_steps)
