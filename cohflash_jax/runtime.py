@@ -22,9 +22,10 @@ _applied = False
 # own (`ExecutableCache.MAX_BYTES`)
 XLA_CACHE_MAX_BYTES = 512 * 2**20
 
-# Programs compiled inside `quick_compile()` are compiled at XLA's lowest optimisation level
-# (`quick_compile_options`): a small capture (a region of interest) runs each program once or twice, so the compile is
-# most of its time and the program's speed hardly counts (docs/performance.md)
+# Programs first called inside `quick_compile()` are compiled for a short compile
+# (`quick_compile_options`: XLA's lowest optimisation level, on the CPU its loop emitters): a small
+# capture (a region of interest) runs each program once or twice, so the compile is most of its
+# time and the program's speed hardly counts (docs/performance.md)
 _QUICK_COMPILE: contextvars.ContextVar[bool] = contextvars.ContextVar("quick_compile", default=False)
 QUICK_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
 # On the CPU a quick program is also emitted by XLA's older loop emitters: the fusion emitters'
@@ -34,6 +35,10 @@ QUICK_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
 # compiles in time doubling with each step: fit for the package's own programs, which the
 # suite compiles, not for arbitrary ones (docs/performance.md)
 QUICK_COMPILE_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+# work on at most this many pixels (a region of interest, a test's capture, the pixels a
+# posterior or a calibration fits) runs its programs once or twice, so they are compiled for a
+# short compile; larger work for speed
+QUICK_COMPILE_MAX_PIXELS = 1024
 
 
 def quick_compile_options(platform: str) -> dict:
@@ -61,12 +66,6 @@ def compile_lowered(lowered, options: dict):
             if unknown is None or unknown.group(1) not in known:
                 raise
             UNKNOWN_XLA_OPTIONS.add(unknown.group(1))
-
-
-# work on at most this many pixels (a region of interest, a test's capture, the pixels a
-# posterior or a calibration fits) runs its programs once or twice, so they are compiled for a
-# short compile; larger work for speed
-QUICK_COMPILE_MAX_PIXELS = 1024
 
 
 @contextlib.contextmanager
