@@ -155,6 +155,12 @@ def async_filter_jit(fun):
     return call
 
 
+def first_device(leaves):
+    """The device the first placed array among `leaves` is on, or None where none is placed
+    (NumPy arrays: JAX's default device runs them)."""
+    return next((d for x in leaves for d in getattr(x, "devices", lambda: ())()), None)
+
+
 def _argument_signature(x):
     """What a compiled program depends on in an argument: shape, dtype, weak type and, for a
     placed array, its sharding (device). Read from the attributes, the dtype as it is: both
@@ -280,7 +286,8 @@ class ExecutableCache:
         if not path.exists():
             return None
         started = time.perf_counter()
-        devices = [d for x in leaves for d in getattr(x, "devices", lambda: ())()][:1] or None
+        device = first_device(leaves)
+        devices = None if device is None else [device]
         program = self._prefetched_program(path, devices)
         try:
             if program is None:
@@ -394,8 +401,8 @@ class ExecutableCache:
             # it a key of its own in that cache
             options = {"xla_debug_buffer_assignment_show_max": 1_000_000 + time.monotonic_ns() % 1_000_000_000}
             if quick:
-                platform = next((d.platform for x in leaves for d in getattr(x, "devices", lambda: ())()), None)
-                options |= quick_compile_options(platform or jax.default_backend())
+                device = first_device(leaves)
+                options |= quick_compile_options(jax.default_backend() if device is None else device.platform)
             compiled = compile_lowered(jitted.lower(*leaves), options)
         except Exception:  # e.g. an argument jit accepts but lowering with it does not
             return jitted
