@@ -26,9 +26,9 @@ from pathlib import Path
 
 def child_reconstruct(capture: str, method: str, out: str) -> dict:
     from cohflash_jax.cli import run_reconstruct
-    from cohflash_jax.runtime import use_cpu_streams
+    from cohflash_jax.runtime import cli_cpu_streams, use_cpu_streams
 
-    use_cpu_streams()  # as `cohflash` does first thing
+    use_cpu_streams(cli_cpu_streams("reconstruct"))  # as `cohflash reconstruct` does first thing
     from cohflash_jax.reconstruct import ReconstructOptions
 
     times = []
@@ -89,9 +89,9 @@ def child_ten_hz() -> dict:
     target at 30.5 m with 10× the paper's probe power (`Instrument.ten_hz_mode`), about the
     SNR threshold (at the paper's power the pixels are flagged low-SNR). Full frame (256×320),
     in memory; per depth map after compilation."""
-    from cohflash_jax.runtime import use_cpu_streams
+    from cohflash_jax.runtime import cli_cpu_streams, use_cpu_streams
 
-    use_cpu_streams()  # as `cohflash` does first thing
+    use_cpu_streams(cli_cpu_streams("stream"))  # as `cohflash stream`, the 10 Hz mode's command, does first thing
     import jax
     import numpy as np
 

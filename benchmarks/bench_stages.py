@@ -44,8 +44,8 @@ sys.orig_argv = [sys.executable, "-m", "cohflash_jax.cli", "reconstruct", sys.ar
 import cohflash_jax.cli as cli
 t1 = time.perf_counter()
 import jax, jax.monitoring as mon
-from cohflash_jax.runtime import EXECUTABLES, exit_process, use_cpu_streams
-use_cpu_streams()
+from cohflash_jax.runtime import EXECUTABLES, cli_cpu_streams, exit_process, use_cpu_streams
+use_cpu_streams(cli_cpu_streams("reconstruct"))
 jax.devices()
 t2 = time.perf_counter()
 events = {}
@@ -73,8 +73,8 @@ STEADY = r"""
 import json, sys, time
 import numpy as np
 import jax
-from cohflash_jax.runtime import async_filter_jit, enable_compilation_cache, use_cpu_streams
-use_cpu_streams()
+from cohflash_jax.runtime import async_filter_jit, cli_cpu_streams, enable_compilation_cache, use_cpu_streams
+use_cpu_streams(cli_cpu_streams("reconstruct"))
 enable_compilation_cache()
 from cohflash_jax.capture import Capture
 from cohflash_jax.cli import run_reconstruct

@@ -207,8 +207,10 @@ class ExecutableCache:
         self._environment: str | None = None
         self.loaded = self.compiled = 0  # programs this process loaded and compiled
         self.load_seconds = self.compile_seconds = 0.0
-        self.used: dict[str, None] = {}  # the entries this process loaded or compiled, in order
-        self.prefetched: dict = {}  # entry path → the future of its load (`prefetch`)
+        # the entries this process loaded or compiled, in order → the index of the device (in
+        # `jax.devices()`) each ran on
+        self.used: dict[str, int] = {}
+        self.prefetched: dict = {}  # entry path → (the future of its load, its device) (`prefetch`)
         self.prefetched_used = 0
 
     def environment(self) -> str:
@@ -269,7 +271,9 @@ class ExecutableCache:
         if name is None:
             return self._compile(jitted, leaves, None, quick) if quick else jitted
         path = self.folder / name
-        self.used[name] = None
+        device = first_device(leaves)
+        devices = jax.devices()
+        self.used[name] = devices.index(device) if device in devices else 0
         program = self._load(path, jitted, leaves, quick)
         if program is None:
             # processes sharing the folder (test workers, Dask workers, two runs started
@@ -315,32 +319,45 @@ class ExecutableCache:
 
     def _prefetched_program(self, path: Path, devices):
         """The executable `prefetch` loaded for `path` (waiting for it), where it was loaded
-        and runs on the device the arguments are on; else None."""
+        onto the device the arguments are on (None: the default device); else None."""
         import jax
 
-        future = self.prefetched.pop(path, None)
-        if future is None or (devices is not None and devices[0] != jax.devices()[0]):
+        entry = self.prefetched.pop(path, None)
+        if entry is None:
+            return None
+        future, device = entry
+        if device != (jax.devices()[0] if devices is None else devices[0]):
             return None
         try:
             program = future.result()
-        except Exception:  # damaged, or for another device: loaded the usual way
+        except Exception:  # damaged: loaded the usual way
             return None
         self.prefetched_used += 1
         return program
 
     def prefetch(self, names) -> bool:
-        """Load the entries `names` in a thread (on the default device, as the CLI's one CPU
-        device or a GPU runs them), for `_load` to take when the programs are asked for.
+        """Load the entries `names` (as `recent` gives them: `NAME` runs on the default device,
+        `NAME@K` on device K of `jax.devices()`, e.g. a second CPU stream) in a thread, each
+        onto its device, for `_load` to take when the programs are asked for.
         `deserialize_and_load` releases the GIL, so the load overlaps the caller's Python.
         Returns whether any load started."""
         import concurrent.futures
 
-        paths = [self.folder / n for n in names if self.folder is not None and n.endswith(".exe") and "/" not in n]
-        paths = [p for p in paths if p.exists() and p not in self.prefetched]
-        if not paths:
+        import jax
+
+        devices, wanted = jax.devices(), {}
+        for note in names:
+            name, _, index = note.partition("@")
+            k = int(index) if index.isdigit() else 0
+            if self.folder is not None and name.endswith(".exe") and "/" not in name and k < len(devices):
+                wanted[self.folder / name] = devices[k]
+        wanted = {p: d for p, d in wanted.items() if p.exists() and p not in self.prefetched}
+        if not wanted:
             return False
         pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="executable-prefetch")
-        self.prefetched.update({p: pool.submit(self._deserialize, p) for p in paths})
+        # each onto its device by name: left to the entry, an executable loads for every local
+        # device where there are several (two CPU streams) and refuses one device's arguments
+        self.prefetched.update({p: (pool.submit(self._deserialize, p, [d]), d) for p, d in wanted.items()})
         pool.shutdown(wait=False)  # its thread ends with the last load
         return True
 
@@ -363,7 +380,8 @@ class ExecutableCache:
         if self.folder is None or input_bytes is None or not self.used:
             return
         path = self.folder / f"recent-{command}-{input_bytes}.txt"
-        if replace_file(path, ("\n".join(self.used) + "\n").encode()):
+        notes = [name if k == 0 else f"{name}@{k}" for name, k in self.used.items()]
+        if replace_file(path, ("\n".join(notes) + "\n").encode()):
             bound_folder(self.folder, "recent-*.txt", self.MAX_NOTE_BYTES)
 
     def _checked(self, program, path: Path, recompile):
@@ -511,11 +529,19 @@ def bound_folder(folder: Path, pattern: str, max_bytes: int):
 EXECUTABLES = ExecutableCache()
 
 
-# CPU devices the CLI asks for, unless a command asks otherwise (`cli.CPU_STREAMS`): one. Two
-# let two sub-tiles' programs run at once, which paid while the ML polish had long serial
-# stretches; measured since (docs/performance.md), one is as fast warm and compiles every
-# program once instead of once per device
+# CPU devices the CLI asks for, unless a command asks otherwise (`COMMAND_CPU_STREAMS`): one.
+# Two let two programs run at once, which pays where one program leaves a core idle, but every
+# program is compiled once per device (measured in docs/performance.md)
 CLI_CPU_STREAMS = 1
+# the simulator's frame chunks gain from two (one chunk's program leaves a core idle); so does a
+# stream of short captures (the 10 Hz maps: small programs, a core idle while the other
+# dispatches and copies), which compiles its programs once for many maps
+COMMAND_CPU_STREAMS = {"simulate": 2, "stream": 2}
+
+
+def cli_cpu_streams(command: str | None) -> int:
+    """The number of JAX CPU devices the `cohflash` command `command` runs with."""
+    return COMMAND_CPU_STREAMS.get(command, CLI_CPU_STREAMS)
 
 
 def use_cpu_streams(count: int = CLI_CPU_STREAMS) -> int:
@@ -631,7 +657,7 @@ def prefetch_for_cli(argv) -> bool:
     if command not in PREFETCH_COMMANDS:
         return False
     try:  # a speed-up only: whatever goes wrong here, the command runs as it would without
-        use_cpu_streams(CLI_CPU_STREAMS)
+        use_cpu_streams(cli_cpu_streams(command))
         if enable_compilation_cache() is None:
             return False
         return EXECUTABLES.prefetch(EXECUTABLES.recent(command, cli_input_bytes(argv)))

@@ -274,7 +274,7 @@ def iter_frame_chunks(
             turbulence_phase(key, n, scene.settings.turbulence_rad_per_sqrt_frame), (0, padded - n), mode="edge"
         )
     frames_key = jax.random.fold_in(key, _KEY_FRAMES)
-    # chunks in turn on each stream device (`simulate` asks for two, `cli.CPU_STREAMS`): one
+    # chunks in turn on each stream device (`simulate` asks for two, `runtime.COMMAND_CPU_STREAMS`): one
     # chunk's program leaves a core idle; the chunks are the same on any device
     devices = stream_devices()
     placed = place_on_devices((true, scene.settings, returns, jnp.asarray(freqs), carrier, frames_key), devices)

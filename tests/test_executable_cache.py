@@ -273,17 +273,33 @@ def test_a_program_calling_lapack_loads_into_a_fresh_process(tmp_path):
 PREFETCHED_RUN = textwrap.dedent(
     """
     import json, sys
-    # as `python -m cohflash_jax.cli reconstruct …` starts: the package's import sees the command
-    sys.orig_argv = [sys.executable, "-m", "cohflash_jax.cli", "reconstruct", sys.argv[1], "--out", sys.argv[2]]
+    # as `python -m cohflash_jax.cli COMMAND …` starts: the package's import sees the command
+    argv = json.loads(sys.argv[1])
+    sys.orig_argv = [sys.executable, "-m", "cohflash_jax.cli", *argv]
     import cohflash_jax
     from cohflash_jax.runtime import EXECUTABLES
     started = len(EXECUTABLES.prefetched)
     from cohflash_jax.cli import main
-    assert main(["reconstruct", sys.argv[1], "--out", sys.argv[2], "--quiet"]) == 0
+    assert main([*argv, "--quiet"]) == 0
     print(json.dumps({"started": started, "used": EXECUTABLES.prefetched_used,
                       "loaded": EXECUTABLES.loaded, "compiled": EXECUTABLES.compiled}))
     """
 )
+
+
+def prefetched_run(argv: list, cache) -> dict:
+    """`cohflash ARGV` in a fresh process on the executable cache `cache`: how many entries its
+    import started loading, how many of those it used, how many it loaded and compiled."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "COHFLASH_JAX_CACHE": str(cache)}
+    done = subprocess.run(
+        [sys.executable, "-c", PREFETCHED_RUN, json.dumps([str(a) for a in argv])],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
 
 
 def test_a_reconstruct_process_loads_its_last_runs_programs_while_it_imports(tmp_path):
@@ -298,20 +314,12 @@ def test_a_reconstruct_process_loads_its_last_runs_programs_while_it_imports(tmp
     capture = tmp_path / "c.h5"
     assert main(["simulate", "planar", "--size", "4x4", "--steps", "128", "--out", str(capture), "--quiet"]) == 0
     cache = tmp_path / "cache"
-    env = {**os.environ, "JAX_PLATFORMS": "cpu", "COHFLASH_JAX_CACHE": str(cache)}
 
     def run(k):
         out = tmp_path / f"d{k}.h5"
-        done = subprocess.run(
-            [sys.executable, "-c", PREFETCHED_RUN, str(capture), str(out)],
-            capture_output=True,
-            text=True,
-            env=env,
-            timeout=300,
-        )
-        assert done.returncode == 0, done.stderr[-2000:]
+        counts = prefetched_run(["reconstruct", capture, "--out", out], cache)
         with h5py.File(out) as f:
-            return json.loads(done.stdout.strip().splitlines()[-1]), f["depth_m"][()], f["fit_status"][()]
+            return counts, f["depth_m"][()], f["fit_status"][()]
 
     first, depth, status = run(1)
     assert first["started"] == 0 and first["compiled"] >= 2  # I/Q and carrier axis; rotation and inversion
@@ -338,6 +346,22 @@ def test_a_reconstruct_process_loads_its_last_runs_programs_while_it_imports(tmp
     assert cli_input_bytes(["cohflash", "reconstruct", str(capture), "--out", str(tmp_path / "d1.h5")]) == (
         capture.stat().st_size
     )
+
+
+def test_a_stream_over_two_cpu_streams_takes_its_last_runs_programs(tmp_path):
+    """`cohflash stream` runs on two CPU devices (`runtime.COMMAND_CPU_STREAMS`), a short
+    sweep's sub-tiles dealt out to both: its next run takes every program from the import's
+    loads, each onto its device, compiling none. (Loaded for every device, the prefetched
+    programs refused one device's arguments and were compiled again every run.)"""
+    from cohflash_jax.cli import main
+
+    capture = tmp_path / "c.h5"  # 512 px of 35 frames: two sub-tiles, one on each device
+    assert main(["simulate", "planar", "--size", "16x32", "--steps", "35", "--out", str(capture), "--quiet"]) == 0
+    cache, argv = tmp_path / "cache", ["stream", capture, "--out-dir", tmp_path / "maps"]
+    first = prefetched_run(argv, cache)
+    assert first["compiled"] == 4  # I/Q with the carrier axis, rotation with the inversion: per device
+    second = prefetched_run(argv, cache)
+    assert second["compiled"] == 0 and second["started"] == second["used"] == second["loaded"] == 4
 
 
 def test_an_option_this_xla_does_not_know_is_left_out_not_the_compile():

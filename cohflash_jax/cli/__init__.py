@@ -11,9 +11,9 @@ from pathlib import Path
 from ..fileio import OutputSet
 from ..process import cli_input_bytes, resume_garbage_collection
 from ..runtime import (
-    CLI_CPU_STREAMS,
     EXECUTABLES,
     PREFETCH_COMMANDS,
+    cli_cpu_streams,
     enable_compilation_cache,
     exit_process,
     use_cpu_streams,
@@ -49,10 +49,6 @@ COMMANDS = (
     scenes,
     paper_report,
 )
-# JAX CPU devices of a command where not `runtime.CLI_CPU_STREAMS`: the simulator's frame chunks
-# gain from two (one chunk's program leaves a core idle; measured in docs/performance.md); a
-# reconstruction does not
-CPU_STREAMS = {"simulate": 2}
 # commands whose files are committed as they go: the sweep's checkpoint after every chunk of
 # points, the demo's capture (which it then reads), a stream's depth file per capture, the report's
 # figures and tables section by section; every other command's outputs form one set
@@ -79,7 +75,7 @@ def main(argv=None) -> int:
     if getattr(args, "scheduler", None) == "processes":  # the GPUs' memory is the workers', not this process's
         os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     enable_compilation_cache()
-    use_cpu_streams(CPU_STREAMS.get(args.command, CLI_CPU_STREAMS))
+    use_cpu_streams(cli_cpu_streams(args.command))
     try:
         check_output_paths(args)
         if args.command in WRITES_AS_IT_GOES:
