@@ -360,6 +360,36 @@ def test_sub_tiles_give_the_same_pixels_as_one_tile(paper_instrument, planar_mon
         np.testing.assert_allclose(parts[k], whole[k], rtol=1e-5, atol=1e-9, err_msg=k)
 
 
+def test_a_long_sweep_read_twice_gives_the_pixels_of_its_stored_iq(paper_instrument, planar_monte_carlo):
+    """A long sweep without a tracked carrier never stores I/Q: one pass over the frames gives
+    the data checks and the carrier axis, a second the rotated sequence (`process_tile`). Its
+    pixels must be those of the programs that keep I/Q (`iq_and_checks`, the carrier axis,
+    the rotation), which a tracked carrier still runs, with a known drift and a dead pixel."""
+    from cohflash_jax.reconstruct import build_plan, process_tile, programs
+    from cohflash_jax.runtime import quick_compile
+
+    f = np.asarray(planar_monte_carlo[2])
+    n = f.shape[1]
+    frames = f.reshape(4, n, -1).copy()
+    frames[2, :, 7] = 300  # a dead pixel
+    rng = np.random.default_rng(1)
+    dark = jnp.asarray(rng.normal(0.0, 2.0, (4, frames.shape[-1])).astype(np.float32))
+    gain = jnp.asarray(rng.normal(1.0, 0.01, (4, frames.shape[-1])).astype(np.float32))
+    drift = jnp.asarray(0.3 * np.sin(np.linspace(0.0, 3.0, n)))
+    with quick_compile():
+        plan = build_plan(paper_instrument, OPTS["ml"], 16383.0)
+        assert n >= programs.SPLIT_AXIS_MIN_FRAMES and not plan.iq.tracking
+        x = jnp.asarray(frames)
+        two_passes = process_tile(plan, x, dark, None, gain, drift)
+        i, q, flags = programs.iq_and_checks(plan.iq, x, dark, gain, drift)
+        c, s, noise_var, total_var = programs.carrier_axis_program(i, q)
+        r = programs.rotate_program(i, q, c, s)
+        stored = programs.invert_sequence(plan, r, noise_var, total_var, flags)
+    assert int(two_passes["fit_status"][7]) == Status.DEAD and np.asarray(two_passes["valid"]).sum() > 50
+    for k in stored:
+        np.testing.assert_allclose(np.asarray(two_passes[k]), np.asarray(stored[k]), rtol=1e-6, atol=0, err_msg=k)
+
+
 def test_options_out_of_range_are_refused():
     """A NaN SNR threshold would pass every pixel (NaN compares false): refused, like the rest."""
     for bad, match in (

@@ -5,7 +5,10 @@ They are separate programs, dispatched asynchronously, because XLA's CPU compile
 badly: within one program it recomputed the per-pixel cos/sin of the carrier axis for every
 frame, and computed the rotated sequence straight into the transposed layout, reading I/Q
 with a stride. For long sweeps (`SPLIT_AXIS_MIN_FRAMES`) the carrier axis is a program of its
-own too: fused with I/Q, its moments recomputed I/Q from the frames. For short sweeps the
+own too: fused with I/Q, its moments recomputed I/Q from the frames. So a long sweep reads
+its frames twice instead and never stores I/Q: the data checks and the axis's moments
+(`axis_and_checks`), then the rotated sequence (`rotated_from_frames`); only a tracked carrier,
+whose drift follows the I/Q sequence, keeps I/Q (`iq_and_checks`). For short sweeps the
 rotation and the inversion are one program (`rotate_and_invert`): there the calls' own cost
 counts, and the fusion costs nothing. Timings of each split: docs/performance.md.
 """
@@ -30,8 +33,12 @@ def process_tile(plan: TilePlan, frames, dark, data_status=None, gain=None, carr
     `dark` (4, P): per-pixel offsets (DN); `gain` (4, P): per-pixel gains relative to the
     hybrid's global ones; `data_status` (P,) int8: codes found upstream (e.g. registration);
     `carrier_phase_rad` (N,): a known carrier drift common to all pixels, removed first.
-    Four programs for a long sweep, two for a short one (`SPLIT_AXIS_MIN_FRAMES`), dispatched
-    asynchronously (none waits for its result)."""
+    Three programs for a long sweep (`SPLIT_AXIS_MIN_FRAMES`; four with a tracked carrier), two
+    for a short one, dispatched asynchronously (none waits for its result)."""
+    if frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES and not plan.iq.tracking:
+        (c, s, noise_var, total_var), flags = axis_and_checks(plan.iq, frames, dark, gain, carrier_phase_rad)
+        r = rotated_from_frames(plan.iq, frames, dark, c, s, gain, carrier_phase_rad)
+        return invert_sequence(plan, r, noise_var, total_var, flags, data_status)
     if frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES:
         i, q, flags = iq_and_checks(plan.iq, frames, dark, gain, carrier_phase_rad)
         c, s, noise_var, total_var = carrier_axis_program(i, q)
@@ -81,6 +88,21 @@ def frame_extremes(frames):
     return fold(frames, jnp.maximum, jnp.max), fold(frames, jnp.minimum, jnp.min)
 
 
+def frame_values(stage: IQStage, frames):
+    """The frames in the stage's arithmetic type, a non-finite value as 0 (flagged apart)."""
+    real = jnp.float64 if stage.dtype == "float64" else jnp.float32
+    floating = jnp.issubdtype(frames.dtype, jnp.floating)
+    return (jnp.where(jnp.isfinite(frames), frames, 0.0) if floating else frames).astype(real)
+
+
+def stage_iq(stage: IQStage, values, dark, gain=None, carrier_phase_rad=None):
+    """I, Q (N, P) of `frame_values`, a known carrier drift removed."""
+    i, q = iq_from_frames(values, stage.weights, stage.bias, dark, gain)
+    if carrier_phase_rad is not None:
+        i, q = derotate(i, q, jnp.asarray(carrier_phase_rad, i.dtype)[:, None])
+    return i, q
+
+
 def _checks_and_iq(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=None):
     """Data checks and I/Q: frames (4, N, P) → I, Q (N, P) (drift removed where asked) and the
     data flags (dead, saturated, finite), each (P,). It takes the plan's I/Q stage alone, so
@@ -88,7 +110,7 @@ def _checks_and_iq(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=No
     real = jnp.float64 if stage.dtype == "float64" else jnp.float32
     floating = jnp.issubdtype(frames.dtype, jnp.floating)
     finite = jnp.all(jnp.isfinite(frames), axis=(0, 1)) if floating else jnp.ones(frames.shape[-1], bool)
-    values = (jnp.where(jnp.isfinite(frames), frames, 0.0) if floating else frames).astype(real)
+    values = frame_values(stage, frames)
     # each pixel's highest and lowest value (a pixel with a non-finite value is bad data
     # whatever they are). A short sweep's program (fused with the carrier axis) takes them
     # from the converted values its I/Q reads anyway, where the conversion is exact; a long
@@ -106,15 +128,31 @@ def _checks_and_iq(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=No
     saturated = (
         jnp.zeros(dead.shape, bool) if stage.saturation_dn is None else jnp.any(high >= stage.saturation_dn, axis=0)
     )
-    i, q = iq_from_frames(values, stage.weights, stage.bias, dark, gain)  # (N, P) each
-    if carrier_phase_rad is not None:
-        i, q = derotate(i, q, jnp.asarray(carrier_phase_rad, i.dtype)[:, None])
+    i, q = stage_iq(stage, values, dark, gain, carrier_phase_rad)
     if stage.tracking:  # remove a slow carrier drift first (turbulence)
         i, q = derotate(i, q, track_carrier_drift(i, q, stage.track_window))
     return i, q, (dead, saturated, finite)
 
 
 iq_and_checks = async_filter_jit(_checks_and_iq)
+
+
+@async_filter_jit
+def axis_and_checks(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=None):
+    """Data checks and the carrier axis (`carrier_axis_program`'s outputs) of a long sweep
+    without a tracked carrier, → ((cos φ, sin φ, noise variance, total variance), flags): I/Q
+    computed and reduced to the axis's moments as the frames are read, not stored."""
+    i, q, flags = _checks_and_iq(stage, frames, dark, gain, carrier_phase_rad)
+    return _axis(i, q), flags
+
+
+@async_filter_jit
+def rotated_from_frames(stage: IQStage, frames, dark, cos_phase, sin_phase, gain=None, carrier_phase_rad=None):
+    """The carrier-aligned sequence r (N, P) straight from the frames: I/Q computed again (as
+    `axis_and_checks` did) and rotated as they are read."""
+    return rotate_onto_axis(
+        *stage_iq(stage, frame_values(stage, frames), dark, gain, carrier_phase_rad), cos_phase, sin_phase
+    )
 
 
 @async_filter_jit
