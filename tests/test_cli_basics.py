@@ -380,6 +380,56 @@ def test_a_cohflash_process_collects_no_garbage_while_it_imports(tmp_path):
     assert as_library.stdout.split() == ["True", "True", "False"]
 
 
+def test_a_reconstruct_process_reads_its_first_tile_into_memory_mapped_while_it_imports(tmp_path):
+    """`cohflash reconstruct FILE` maps as much memory as its first tile can need (the file's
+    size, at most `PREFAULT_MAX_BYTES`) with its pages touched while the package imports, and
+    the tile buffer is taken from it: the same depth file. Other commands, a library user's
+    process, a Dask run and a registered capture (which read elsewhere) map nothing; memory
+    too small for the tile is let go and the buffer allocated as before."""
+    import h5py
+
+    from cohflash_jax import process
+    from cohflash_jax.reconstruct.engine import tile_buffer
+
+    capture = tmp_path / "c.h5"
+    assert main(["simulate", "planar", "--size", "8x8", "--steps", "64", "--out", str(capture), "--quiet"]) == 0
+    cli = ["python", "-m", "cohflash_jax.cli", "reconstruct", str(capture)]
+    for argv in (["python", "-m", "pytest"], [*cli[:3], "info", str(capture)], [*cli, "--scheduler", "processes"]):
+        assert not process.prefault_for_cli(argv)
+    assert not process.prefault_for_cli([*cli, "--registration", str(capture)])
+    assert process.take_prefaulted(1) is None  # nothing mapped
+    assert process.prefault_for_cli(cli)
+    mapping = process.take_prefaulted(capture.stat().st_size)
+    assert len(mapping) == capture.stat().st_size and not any(mapping[:4096])
+    assert process.prefault_for_cli(cli) and process.take_prefaulted(capture.stat().st_size + 1) is None
+    assert process.take_prefaulted(1) is None  # taken once
+    assert process.prefault_for_cli(cli)
+    buffer = tile_buffer((4, 64, 2, 8), np.uint16)  # from the mapping: page-aligned, zeroed, writable
+    assert buffer.ctypes.data % 4096 == 0 and buffer.flags.writeable and not buffer.any()
+    probe = (
+        "import sys\n"
+        "if sys.argv[1] == 'mapped':  # as `python -m cohflash_jax.cli …` starts\n"
+        "    sys.orig_argv = [sys.executable, '-m', 'cohflash_jax.cli', *sys.argv[2:]]\n"
+        "import cohflash_jax\n"
+        "from cohflash_jax import process\n"
+        "started = 'thread' in process._PREFAULTED\n"
+        "from cohflash_jax.cli import main\n"
+        "assert main(sys.argv[2:]) == 0\n"
+        "print(started, 'thread' not in process._PREFAULTED)\n"
+    )
+    outs = {}
+    for name in ("mapped", "allocated"):
+        out = tmp_path / f"{name}.h5"
+        args = [name, "reconstruct", str(capture), "--out", str(out), "--quiet"]
+        done = subprocess.run([sys.executable, "-c", probe, *args], capture_output=True, text=True, check=False)
+        assert done.returncode == 0, done.stderr[-2000:]
+        assert done.stdout.split()[-2:] == [str(name == "mapped"), "True"]  # started, and taken
+        with h5py.File(out) as f:
+            outs[name] = f["depth_m"][()], f["fit_status"][()]
+    for a, b in zip(outs["mapped"], outs["allocated"]):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_a_cohflash_process_takes_gpu_memory_on_demand_unless_told_otherwise(monkeypatch):
     """A `cohflash` command's interpreter sets XLA_PYTHON_CLIENT_PREALLOCATE=false before JAX
     starts (reserving three quarters of an H200 cost each full-capture run 1.4 s); a user's own setting

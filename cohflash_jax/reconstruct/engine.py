@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..capture import Capture
+from ..process import take_prefaulted
 from ..runtime import QUICK_COMPILE_MAX_PIXELS, place_on_devices, stream_devices
 from .plan import TilePlan, program_plan
 from .programs import process_tile
@@ -71,6 +72,17 @@ def aligned_copy(view: np.ndarray, width: int) -> np.ndarray:
     out[..., : view.shape[-1]] = view
     out[..., view.shape[-1] :] = 0
     return out
+
+
+def tile_buffer(shape: tuple, dtype) -> np.ndarray:
+    """A zeroed C-contiguous array for tiles read from a capture: in the memory a `cohflash
+    reconstruct` process mapped while it imported (`process.take_prefaulted`) where there is
+    such memory and it is large enough, else newly allocated."""
+    nbytes = math.prod(shape) * np.dtype(dtype).itemsize
+    mapping = take_prefaulted(nbytes)
+    if mapping is None:
+        return np.zeros(shape, dtype)
+    return np.frombuffer(mapping, np.uint8, count=nbytes).view(dtype).reshape(shape)
 
 
 @dataclasses.dataclass
@@ -161,7 +173,7 @@ class BlockReader:
         r1 = min(self.h, r0 + self.rows)
         free = [k for k in range(len(self.buffers)) if k != self.held]
         if not free:
-            self.buffers.append(np.zeros(self.shape, self.dtype))
+            self.buffers.append(tile_buffer(self.shape, self.dtype))
             free = [len(self.buffers) - 1]
         self.last = free[0]
         buf = self.buffers[self.last]
