@@ -40,13 +40,63 @@ PARAMETERS = ("depth_offset_mm", "amplitude", "carrier_phase_rad")
 LABELS = ("depth − ML (mm)", "amplitude A (DN)", "carrier phase δφ (rad)")
 
 
-class SnookerMove(emcee.moves.DESnookerMove):
+class AcceptanceInOneDraw:
+    """For emcee's red-blue moves: each sub-ensemble's Metropolis test in one draw. emcee's
+    `RedBlueMove.propose` compares each walker's log-ratio with log U in a Python loop, one
+    `random.rand()` a walker; `rand(k)` gives the same k numbers from NumPy's legacy
+    `RandomState`, so the chains are emcee's own, step for step (tested), in less of a step's time."""
+
+    def propose(self, model, state):
+        nwalkers, ndim = state.coords.shape
+        if nwalkers < 2 * ndim and not self.live_dangerously:
+            raise RuntimeError(
+                "It is unadvisable to use a red-blue move with fewer walkers than twice the number of dimensions."
+            )
+        self.setup(state.coords)
+        accepted = np.zeros(nwalkers, dtype=bool)
+        inds = np.arange(nwalkers) % self.nsplits
+        if self.randomize_split:
+            model.random.shuffle(inds)
+        for split in range(self.nsplits):
+            mine = inds == split
+            sets = [state.coords[inds == j] for j in range(self.nsplits)]
+            proposal, factors = self.get_proposal(sets[split], sets[:split] + sets[split + 1 :], model.random)
+            log_probs, blobs = model.compute_log_prob_fn(proposal)
+            log_ratio = factors + log_probs - state.log_prob[mine]
+            accepted[mine] = log_ratio > np.log(model.random.rand(int(mine.sum())))
+            state = self.update(state, emcee.State(proposal, log_prob=log_probs, blobs=blobs), accepted, mine)
+        return state, accepted
+
+
+class DEMove(AcceptanceInOneDraw, emcee.moves.DEMove):
+    """emcee's differential-evolution move, its acceptance drawn at once (`AcceptanceInOneDraw`)."""
+
+
+class EnsembleSampler(emcee.EnsembleSampler):
+    """emcee's sampler taking a vectorised log-probability's array as it is: emcee's own
+    `compute_log_prob` makes a Python scalar of each walker's value (looking for blobs), a good
+    part of a step where the log-probability itself is a few NumPy operations. The same values;
+    NaN refused as emcee refuses it; non-finite walkers left to emcee's checks and messages."""
+
+    def compute_log_prob(self, coords):
+        if not self.vectorize or self.params_are_named or not np.all(np.isfinite(coords)):
+            return super().compute_log_prob(coords)
+        log_prob = np.asarray(self.log_prob_fn(coords), np.float64)
+        if log_prob.shape != (coords.shape[0],):  # blobs, or another shape: emcee sorts it out
+            return super().compute_log_prob(coords)
+        if np.any(np.isnan(log_prob)):
+            raise ValueError("Probability function returned NaN")
+        return log_prob, None
+
+
+class SnookerMove(AcceptanceInOneDraw, emcee.moves.DESnookerMove):
     """emcee's differential-evolution snooker move (Ter Braak & Vrugt 2008), the same proposal
     drawn for all walkers of a sub-ensemble at once. emcee's own draws them walker by walker in
     Python, a fifth of a pixel's sampling time (docs/performance.md). Each walker takes one
     walker of each complementary sub-ensemble in a random order: z, then z₁ and z₂; it moves
     along u = (x − z)/√|x − z| by γ·u·(z₁ − z₂), with the snooker's Metropolis factor
-    ½(d − 1)·log(|x′ − z|/|x − z|). Its random draws differ from emcee's, not their law (tested)."""
+    ½(d − 1)·log(|x′ − z|/|x − z|). Its random draws differ from emcee's, not their law (tested);
+    its acceptance is drawn at once (`AcceptanceInOneDraw`)."""
 
     def get_proposal(self, s, c, random):
         walkers, ndim = s.shape
@@ -287,8 +337,8 @@ def sample_pixel(
     # differential-evolution moves (emcee's recipe for multimodal targets, a snooker share for
     # jumps between modes): on the high-SNR planar target τ fell so that chains converge in
     # 1500–2000 steps against 2500–3000 with the default stretch move, at the same widths
-    moves = [(emcee.moves.DEMove(), 0.8), (SnookerMove(), 0.2)]
-    sampler = emcee.EnsembleSampler(nwalkers, 3, log_prob, vectorize=True, backend=backend, moves=moves)
+    moves = [(DEMove(), 0.8), (SnookerMove(), 0.2)]
+    sampler = EnsembleSampler(nwalkers, 3, log_prob, vectorize=True, backend=backend, moves=moves)
     # emcee seeds its moves from NumPy's global generator unless told: seed it from `rng`, so a
     # posterior is reproducible for a given seed
     sampler.random_state = np.random.RandomState(int(rng.integers(2**32))).get_state()

@@ -211,6 +211,38 @@ def test_the_log_posterior_is_the_window_models_gaussian_likelihood(paper_instru
     assert with_offset_column == 2
 
 
+def test_acceptance_in_one_draw_walks_emcees_own_chains():
+    """`AcceptanceInOneDraw` and our `EnsembleSampler` change how emcee's step is computed, not
+    what it draws: from the same seed, emcee's stock moves and sampler and ours walk the same
+    chains to the bit, for the differential-evolution move and for the snooker move (whose
+    Metropolis factors are not zero), on a two-mode target with walkers proposed outside it."""
+    import emcee
+
+    from cohflash_jax.uncertainty import AcceptanceInOneDraw, DEMove, EnsembleSampler
+
+    class Snooker(AcceptanceInOneDraw, emcee.moves.DESnookerMove):
+        pass
+
+    def log_prob(x):  # vectorised; −inf beyond |x₀| = 2.5
+        modes = np.logaddexp(-0.5 * np.sum((x - 1) ** 2, axis=1), -2.0 * np.sum((x + 1) ** 2, axis=1))
+        return np.where(np.abs(x[:, 0]) < 2.5, modes, -np.inf)
+
+    start = np.random.default_rng(0).normal(0.0, 0.5, (16, 3))
+
+    def chain(sampler, moves):
+        s = sampler(16, 3, log_prob, vectorize=True, moves=moves)
+        s.random_state = np.random.RandomState(7).get_state()
+        s.run_mcmc(start, 400)
+        return s.get_chain(), s.get_log_prob(), s.acceptance_fraction
+
+    stock = [(emcee.moves.DEMove(), 0.7), (emcee.moves.DESnookerMove(), 0.3)]
+    ours = [(DEMove(), 0.7), (Snooker(), 0.3)]
+    expected, got = chain(emcee.EnsembleSampler, stock), chain(EnsembleSampler, ours)
+    for a, b in zip(expected, got):
+        np.testing.assert_array_equal(a, b)
+    assert 0.1 < got[2].mean() < 0.9 and np.isfinite(got[1]).all()
+
+
 def test_the_vectorised_snooker_move_proposes_as_emcees_own():
     """`SnookerMove` draws emcee's `DESnookerMove` proposal for all walkers at once: from the
     same walkers and complementary sub-ensembles, 4,000 proposals each, the two laws of every
