@@ -207,8 +207,8 @@ class ExecutableCache:
         self._environment: str | None = None
         self.loaded = self.compiled = 0  # programs this process loaded and compiled
         self.load_seconds = self.compile_seconds = 0.0
-        # the entries this process loaded or compiled, in order → the index of the device (in
-        # `jax.devices()`) each ran on
+        # the entries this process loaded or compiled on the default backend's devices, in
+        # order → the index of the device (in `jax.devices()`) each ran on
         self.used: dict[str, int] = {}
         self.prefetched: dict = {}  # entry path → (the future of its load, its device) (`prefetch`)
         self.prefetched_used = 0
@@ -271,9 +271,9 @@ class ExecutableCache:
         if name is None:
             return self._compile(jitted, leaves, None, quick) if quick else jitted
         path = self.folder / name
-        device = first_device(leaves)
-        devices = jax.devices()
-        self.used[name] = devices.index(device) if device in devices else 0
+        device, devices = first_device(leaves), jax.devices()
+        if device is None or device in devices:  # what the next run's `prefetch` can load
+            self.used[name] = 0 if device is None else devices.index(device)
         program = self._load(path, jitted, leaves, quick)
         if program is None:
             # processes sharing the folder (test workers, Dask workers, two runs started
