@@ -14,7 +14,7 @@ from .calibration_file import PixelMaps
 from .instrument import Instrument
 from .reconstruct import ReconstructOptions, build_plan
 from .status import UNUSABLE_DATA, Status
-from .uncertainty import LABELS, PARAMETERS, Posterior, check_max_steps, pixel_data, sample_pixel
+from .uncertainty import LABELS, PARAMETERS, Posterior, check_max_steps, pixel_data, sample_pixel, sample_pixels_of
 
 POSTERIOR_FIELDS = (
     "row",
@@ -88,24 +88,22 @@ def run_pixels(
         )
     rng = np.random.default_rng(seed)
     g = plan.geometry
-    results = []
-    for p in progress_bar(usable, unit="px", desc="posterior", disable=not progress):
-        r, c = pixels[p]
-        d = jax.tree.map(lambda x, p=p: x[p], data)
-        backend = None if chains_path is None else emcee.backends.HDFBackend(str(chains_path), name=f"pixel_{r}_{c}")
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # emcee's autocorrelation on short chains
-            post = sample_pixel(
-                plan.model,
-                d,
-                ambiguity_m=g.ambiguity_m,
-                bin_depth_m=g.bin_depth_m,
-                ripple_m=g.ripple_m,
-                rng=rng,
-                max_steps=max_steps,
-                backend=backend,
-            )
-        results.append((r, c, post))
+    geometry = dict(ambiguity_m=g.ambiguity_m, bin_depth_m=g.bin_depth_m, ripple_m=g.ripple_m)
+    bar = progress_bar(total=usable.size, unit="px", desc="posterior", disable=not progress)
+    with bar, warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # emcee's autocorrelation on short chains
+        if chains_path is None:  # every pixel at once, the same posteriors (`sample_pixels_of`)
+            usable_data = jax.tree.map(lambda x: x[usable], data)
+            posts = sample_pixels_of(plan.model, usable_data, **geometry, rng=rng, max_steps=max_steps, done=bar.update)
+        else:  # emcee's own sampler, pixel by pixel, each chain in emcee's HDF5 backend
+            posts = []
+            for p in usable:
+                r, c = pixels[p]
+                backend = emcee.backends.HDFBackend(str(chains_path), name=f"pixel_{r}_{c}")
+                d = jax.tree.map(lambda x, p=p: x[p], data)
+                posts.append(sample_pixel(plan.model, d, **geometry, rng=rng, max_steps=max_steps, backend=backend))
+                bar.update(1)
+    results = [(*pixels[p], post) for p, post in zip(usable, posts)]
     return results, skipped
 
 

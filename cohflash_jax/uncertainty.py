@@ -22,13 +22,13 @@ from __future__ import annotations
 import dataclasses
 import warnings
 
-import emcee
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .constants import SPEED_OF_LIGHT_M_PER_S as C
+from .ensemble import DEMove, EnsembleSampler, LockstepEnsembles, SnookerMove, integrated_times
 from .estimate.coarse import unitary_rfft
 from .estimate.iq import align_carrier_static, derotate, iq_from_frames
 from .estimate.window_model import UniformModel, bin_weights, window_tables
@@ -38,77 +38,6 @@ from .status import Status
 
 PARAMETERS = ("depth_offset_mm", "amplitude", "carrier_phase_rad")
 LABELS = ("depth − ML (mm)", "amplitude A (DN)", "carrier phase δφ (rad)")
-
-
-class AcceptanceInOneDraw:
-    """For emcee's red-blue moves: each sub-ensemble's Metropolis test in one draw. emcee's
-    `RedBlueMove.propose` compares each walker's log-ratio with log U in a Python loop, one
-    `random.rand()` a walker; `rand(k)` gives the same k numbers from NumPy's legacy
-    `RandomState`, so the chains are emcee's own, step for step (tested), in less of a step's time."""
-
-    def propose(self, model, state):
-        nwalkers, ndim = state.coords.shape
-        if nwalkers < 2 * ndim and not self.live_dangerously:
-            raise RuntimeError(
-                "It is unadvisable to use a red-blue move with fewer walkers than twice the number of dimensions."
-            )
-        self.setup(state.coords)
-        accepted = np.zeros(nwalkers, dtype=bool)
-        inds = np.arange(nwalkers) % self.nsplits
-        if self.randomize_split:
-            model.random.shuffle(inds)
-        for split in range(self.nsplits):
-            mine = inds == split
-            sets = [state.coords[inds == j] for j in range(self.nsplits)]
-            proposal, factors = self.get_proposal(sets[split], sets[:split] + sets[split + 1 :], model.random)
-            log_probs, blobs = model.compute_log_prob_fn(proposal)
-            log_ratio = factors + log_probs - state.log_prob[mine]
-            accepted[mine] = log_ratio > np.log(model.random.rand(int(mine.sum())))
-            state = self.update(state, emcee.State(proposal, log_prob=log_probs, blobs=blobs), accepted, mine)
-        return state, accepted
-
-
-class DEMove(AcceptanceInOneDraw, emcee.moves.DEMove):
-    """emcee's differential-evolution move, its acceptance drawn at once (`AcceptanceInOneDraw`)."""
-
-
-class EnsembleSampler(emcee.EnsembleSampler):
-    """emcee's sampler taking a vectorised log-probability's array as it is: emcee's own
-    `compute_log_prob` makes a Python scalar of each walker's value (looking for blobs), a good
-    part of a step where the log-probability itself is a few NumPy operations. The same values;
-    NaN refused as emcee refuses it; non-finite walkers left to emcee's checks and messages."""
-
-    def compute_log_prob(self, coords):
-        if not self.vectorize or self.params_are_named or not np.all(np.isfinite(coords)):
-            return super().compute_log_prob(coords)
-        log_prob = np.asarray(self.log_prob_fn(coords), np.float64)
-        if log_prob.shape != (coords.shape[0],):  # blobs, or another shape: emcee sorts it out
-            return super().compute_log_prob(coords)
-        if np.any(np.isnan(log_prob)):
-            raise ValueError("Probability function returned NaN")
-        return log_prob, None
-
-
-class SnookerMove(AcceptanceInOneDraw, emcee.moves.DESnookerMove):
-    """emcee's differential-evolution snooker move (Ter Braak & Vrugt 2008), the same proposal
-    drawn for all walkers of a sub-ensemble at once. emcee's own draws them walker by walker in
-    Python, a fifth of a pixel's sampling time (docs/performance.md). Each walker takes one
-    walker of each complementary sub-ensemble in a random order: z, then z₁ and z₂; it moves
-    along u = (x − z)/√|x − z| by γ·u·(z₁ − z₂), with the snooker's Metropolis factor
-    ½(d − 1)·log(|x′ − z|/|x − z|). Its random draws differ from emcee's, not their law (tested);
-    its acceptance is drawn at once (`AcceptanceInOneDraw`)."""
-
-    def get_proposal(self, s, c, random):
-        walkers, ndim = s.shape
-        others = np.stack([cj[random.randint(len(cj), size=walkers)] for cj in c[:3]], axis=1)  # (walkers, 3, d)
-        order = np.argsort(random.random_sample((walkers, 3)), axis=1)  # emcee's shuffle of the three
-        z, z1, z2 = np.moveaxis(np.take_along_axis(others, order[:, :, None], axis=1), 1, 0)
-        delta = s - z
-        norm = np.linalg.norm(delta, axis=1)
-        u = delta / np.sqrt(norm)[:, None]
-        q = s + u * self.gammas * np.sum(u * (z1 - z2), axis=1, keepdims=True)
-        metropolis = np.log(np.linalg.norm(q - z, axis=1)) - np.log(norm)
-        return q, 0.5 * (ndim - 1.0) * metropolis
 
 
 class PixelData(eqx.Module):
@@ -200,41 +129,71 @@ def _dot_tables(table, dc, omega, r_window, q_window) -> dict:
     }
 
 
-def _log_posterior(dots, noise_var, table_start_mm, table_step_mm, ml_depth_m, depth_half_range_m, ambiguity_m, thetas):
-    """Log-posterior of walkers `thetas` (B, 3) from a pixel's `_dot_tables`; the amplitude is
-    in the units of the data.
+@dataclasses.dataclass(frozen=True)
+class PixelLikelihoods:
+    """The log-posteriors of P pixels (`log_prob`), each from its `_dot_tables`: the rows
+    (P, G, 5) on a depth grid shared by the pixels (`table_start_mm`, `table_step_mm`), and
+    each pixel's data products, noise variance and ML depth (P,). The amplitude is in the
+    units of the data.
 
     NumPy, not jitted JAX: emcee calls it twice a step on ~16 walkers, where a jitted call's
     dispatch and transfer cost far more than the microseconds of work (docs/performance.md)."""
-    offset_mm, amp, dphi = thetas[:, 0], thetas[:, 1], thetas[:, 2]
-    pos = (offset_mm - table_start_mm) / table_step_mm
-    idx = np.clip(np.floor(pos).astype(int), 0, dots["rows"].shape[0] - 2)
-    f = pos - idx
-    g = 1 - f
-    lo, hi = dots["rows"][idx], dots["rows"][idx + 1]  # (B, 5) each
-    my_r, my_q, md = (amp[:, None] * (g[:, None] * lo[:, :3] + f[:, None] * hi[:, :3])).T
-    mm = amp * amp * (g * g * lo[:, 3] + 2 * f * g * lo[:, 4] + f * f * hi[:, 3])
-    c, s = np.cos(dphi), np.sin(dphi)
-    unit = c * c + s * s
-    # |y − model|², then the offset's column (c·d, s·d) projected out
-    ee = dots["yy"] - 2 * (c * my_r + s * my_q) + unit * mm
-    ce = c * dots["yd_r"] + s * dots["yd_q"] - unit * md
-    chi2 = ee - ce * ce / (unit * dots["dd"] + 1e-300)
-    depth = ml_depth_m + 1e-3 * offset_mm
-    ok = (
-        (amp >= 0)
-        & (np.abs(dphi) <= np.pi)
-        & (np.abs(1e-3 * offset_mm) <= depth_half_range_m)
-        & (depth >= 0)
-        & (depth < ambiguity_m)
-    )
-    return np.where(ok, -chi2 / noise_var, -np.inf)
+
+    rows: np.ndarray
+    yy: np.ndarray
+    yd_r: np.ndarray
+    yd_q: np.ndarray
+    dd: np.ndarray
+    noise_var: np.ndarray
+    ml_depth_m: np.ndarray
+    table_start_mm: float
+    table_step_mm: float
+    depth_half_range_m: float
+    ambiguity_m: float
+
+    @classmethod
+    def stack(cls, pixels: list[PixelLikelihoods]) -> PixelLikelihoods:
+        """One object of several (their grid, prior and bounds are the plan's, hence shared)."""
+        joined = {
+            f.name: np.concatenate([getattr(p, f.name) for p in pixels])
+            for f in dataclasses.fields(cls)
+            if isinstance(getattr(pixels[0], f.name), np.ndarray)
+        }
+        return dataclasses.replace(pixels[0], **joined)
+
+    def log_prob(self, pixels, thetas):
+        """Log-posterior (n, K) of walkers `thetas` (n, K, 3) of the `pixels` (n,)."""
+        pixels = np.asarray(pixels)[:, None]
+        offset_mm, amp, dphi = thetas[..., 0], thetas[..., 1], thetas[..., 2]
+        pos = (offset_mm - self.table_start_mm) / self.table_step_mm
+        idx = np.clip(np.floor(pos).astype(int), 0, self.rows.shape[1] - 2)
+        f = pos - idx
+        g = 1 - f
+        lo, hi = self.rows[pixels, idx], self.rows[pixels, idx + 1]  # (n, K, 5) each
+        model_dots = amp[..., None] * (g[..., None] * lo[..., :3] + f[..., None] * hi[..., :3])
+        my_r, my_q, md = model_dots[..., 0], model_dots[..., 1], model_dots[..., 2]
+        mm = amp * amp * (g * g * lo[..., 3] + 2 * f * g * lo[..., 4] + f * f * hi[..., 3])
+        c, s = np.cos(dphi), np.sin(dphi)
+        unit = c * c + s * s
+        # |y − model|², then the offset's column (c·d, s·d) projected out
+        ee = self.yy[pixels] - 2 * (c * my_r + s * my_q) + unit * mm
+        ce = c * self.yd_r[pixels] + s * self.yd_q[pixels] - unit * md
+        chi2 = ee - ce * ce / (unit * self.dd[pixels] + 1e-300)
+        depth = self.ml_depth_m[pixels] + 1e-3 * offset_mm
+        ok = (
+            (amp >= 0)
+            & (np.abs(dphi) <= np.pi)
+            & (np.abs(1e-3 * offset_mm) <= self.depth_half_range_m)
+            & (depth >= 0)
+            & (depth < self.ambiguity_m)
+        )
+        return np.where(ok, -chi2 / self.noise_var[pixels], -np.inf)
 
 
-def make_log_prob(
+def pixel_likelihood(
     model: UniformModel, data: PixelData, *, depth_half_range_m: float, ambiguity_m: float, ripple_m: float
-):
-    """Vectorised log-posterior over walkers for emcee (NumPy; the table is built with JAX)."""
+) -> PixelLikelihoods:
+    """One pixel's log-posterior (`PixelLikelihoods` of one pixel; the table is built with JAX)."""
     order = max(1, model.weights.shape[0] - 1)
     step_mm = 1e3 * min(ripple_m, depth_half_range_m) / (order * 1000)
     half_mm = 1e3 * depth_half_range_m
@@ -243,18 +202,32 @@ def make_log_prob(
         model, np.asarray(data.k0), data.ml_depth_m + 1e-3 * grid, int(data.r_window.shape[0])
     )
     dots = _dot_tables(table, dc, omega, np.asarray(data.r_window), np.asarray(data.q_window))
-    args = (
-        dots,
-        float(data.noise_var),
-        float(grid[0]),
-        float(step_mm),
-        float(data.ml_depth_m),
-        depth_half_range_m,
-        ambiguity_m,
+    one = lambda x: np.array([x], np.float64)
+    return PixelLikelihoods(
+        rows=dots["rows"][None],
+        yy=one(dots["yy"]),
+        yd_r=one(dots["yd_r"]),
+        yd_q=one(dots["yd_q"]),
+        dd=one(dots["dd"]),
+        noise_var=one(data.noise_var),
+        ml_depth_m=one(data.ml_depth_m),
+        table_start_mm=float(grid[0]),
+        table_step_mm=float(step_mm),
+        depth_half_range_m=depth_half_range_m,
+        ambiguity_m=ambiguity_m,
+    )
+
+
+def make_log_prob(
+    model: UniformModel, data: PixelData, *, depth_half_range_m: float, ambiguity_m: float, ripple_m: float
+):
+    """Vectorised log-posterior over walkers (B, 3) → (B,) of one pixel, for emcee."""
+    likelihood = pixel_likelihood(
+        model, data, depth_half_range_m=depth_half_range_m, ambiguity_m=ambiguity_m, ripple_m=ripple_m
     )
 
     def log_prob(thetas):
-        return _log_posterior(*args, np.asarray(thetas, np.float64))
+        return likelihood.log_prob([0], np.asarray(thetas, np.float64)[None])[0]
 
     return log_prob
 
@@ -288,7 +261,20 @@ def check_max_steps(max_steps: int):
         raise ValueError(f"max_steps must be ≥ 1 (emcee steps a pixel), got {max_steps}")
 
 
-def sample_pixel(
+# differential-evolution moves (emcee's recipe for multimodal targets, a snooker share for jumps
+# between modes): on the high-SNR planar target τ fell so that chains converge in 1500–2000
+# steps against 2500–3000 with the default stretch move, at the same widths
+MOVE_WEIGHTS = (0.8, 0.2)
+# a posterior run steps at most this many pixels together (`LockstepEnsembles`): each keeps its
+# whole chain until it ends (1.5 MB a pixel at 2,000 steps of 32 walkers)
+LOCKSTEP_PIXELS = 32
+
+
+def _moves():
+    return list(zip((DEMove(), SnookerMove()), MOVE_WEIGHTS))
+
+
+def _start(
     model: UniformModel,
     data: PixelData,
     *,
@@ -296,16 +282,15 @@ def sample_pixel(
     bin_depth_m: float,
     ripple_m: float,
     rng: np.random.Generator,
-    nwalkers: int = 32,
-    batch: int = 250,
-    max_steps: int = 20000,
-    backend=None,
-) -> Posterior:
-    """emcee posterior of one pixel. Runs until the chain is ≥ 50 integrated autocorrelation
-    times long and τ has settled (emcee's guidance), else warns at `max_steps`."""
-    check_max_steps(max_steps)
+    nwalkers: int,
+) -> tuple[PixelLikelihoods, np.ndarray, int]:
+    """A pixel's log-posterior, its walkers' start (nwalkers, 3) and its sampler's seed, drawn
+    from `rng` in this order."""
     half_range = 2 * bin_depth_m
-    log_prob = make_log_prob(model, data, depth_half_range_m=half_range, ambiguity_m=ambiguity_m, ripple_m=ripple_m)
+    likelihood = pixel_likelihood(
+        model, data, depth_half_range_m=half_range, ambiguity_m=ambiguity_m, ripple_m=ripple_m
+    )
+    log_prob = lambda thetas: likelihood.log_prob([0], thetas[None])[0]
     amp0 = (
         float(data.ml_amplitude)
         if np.isfinite(data.ml_amplitude) and data.ml_amplitude > 0
@@ -334,37 +319,40 @@ def sample_pixel(
     p0[flip, 2] = np.angle(np.exp(1j * (p0[flip, 2] + np.pi)))
     bad = ~np.isfinite(log_prob(p0))
     p0[bad, 0], p0[bad, 2] = rng.normal(0, min(sigma_mm, 0.1 * half_range * 1e3), bad.sum()), 0.0
-    # differential-evolution moves (emcee's recipe for multimodal targets, a snooker share for
-    # jumps between modes): on the high-SNR planar target τ fell so that chains converge in
-    # 1500–2000 steps against 2500–3000 with the default stretch move, at the same widths
-    moves = [(DEMove(), 0.8), (SnookerMove(), 0.2)]
-    sampler = EnsembleSampler(nwalkers, 3, log_prob, vectorize=True, backend=backend, moves=moves)
     # emcee seeds its moves from NumPy's global generator unless told: seed it from `rng`, so a
     # posterior is reproducible for a given seed
-    sampler.random_state = np.random.RandomState(int(rng.integers(2**32))).get_state()
-    state, old_tau, converged, tau = p0, np.full(3, np.inf), False, np.full(3, np.nan)
-    while sampler.iteration < max_steps:
-        state = sampler.run_mcmc(state, batch, progress=False)
-        tau = sampler.get_autocorr_time(tol=0)
-        if (
-            np.all(np.isfinite(tau))
-            and sampler.iteration >= 50 * np.max(tau)
-            and np.all(np.abs(old_tau - tau) / tau < 0.05)
-        ):
-            converged = True
-            break
-        old_tau = tau
+    return likelihood, p0, int(rng.integers(2**32))
+
+
+def _converged(iteration: int, tau: np.ndarray, old_tau: np.ndarray) -> bool:
+    """emcee's guidance: the chain is ≥ 50 integrated autocorrelation times long and τ has
+    settled (changed by < 5 % since the last check)."""
+    return bool(
+        np.all(np.isfinite(tau)) and iteration >= 50 * np.max(tau) and np.all(np.abs(old_tau - tau) / tau < 0.05)
+    )
+
+
+def _summary(
+    chain: np.ndarray,
+    acceptance_fraction: np.ndarray,
+    tau: np.ndarray,
+    converged: bool,
+    data: PixelData,
+    ripple_m: float,
+) -> Posterior:
+    """A pixel's `Posterior` from its chain (steps, W, 3), as emcee's sampler leaves it."""
+    iteration = chain.shape[0]
     tau_max = float(np.max(tau)) if np.all(np.isfinite(tau)) else float("nan")
-    burn = min(int(2 * tau_max), sampler.iteration // 2) if np.isfinite(tau_max) else sampler.iteration // 2
+    burn = min(int(2 * tau_max), iteration // 2) if np.isfinite(tau_max) else iteration // 2
     thin = max(1, int(tau_max / 2)) if np.isfinite(tau_max) else 1
-    samples = sampler.get_chain(discard=burn, thin=thin, flat=True)
+    samples = chain[burn + thin - 1 :: thin].reshape(-1, chain.shape[-1])  # emcee's get_chain(discard, thin, flat)
     note = ""
     if not converged:
         note = (
-            f"not converged after {sampler.iteration} steps (τ ≈ {tau_max:.0f} steps; 50τ needed): "
+            f"not converged after {iteration} steps (τ ≈ {tau_max:.0f} steps; 50τ needed): "
             "treat the intervals as indicative"
         )
-        warnings.warn(note, stacklevel=2)
+        warnings.warn(note, stacklevel=3)
     if int(data.status) != Status.OK:
         note = (note + "; " if note else "") + "the ML fit flagged this pixel (low SNR or bad data)"
     depth = float(data.ml_depth_m) + 1e-3 * samples[:, 0]
@@ -384,15 +372,98 @@ def sample_pixel(
         float(q[2]),
         (float(q[1]), float(q[3])),
         (float(q[0]), float(q[4])),
-        crlb,
+        float(data.crlb_m),
         multimodal,
         converged,
         tau_max,
-        float(np.mean(sampler.acceptance_fraction)),
-        int(sampler.iteration),
+        float(np.mean(acceptance_fraction)),
+        int(iteration),
         note,
         int(data.status),
     )
+
+
+def sample_pixel(
+    model: UniformModel,
+    data: PixelData,
+    *,
+    ambiguity_m: float,
+    bin_depth_m: float,
+    ripple_m: float,
+    rng: np.random.Generator,
+    nwalkers: int = 32,
+    batch: int = 250,
+    max_steps: int = 20000,
+    backend=None,
+) -> Posterior:
+    """emcee posterior of one pixel, by emcee's own sampler (its chain kept in `backend`, an
+    emcee backend, where given). Runs until the chain is ≥ 50 integrated autocorrelation times
+    long and τ has settled (emcee's guidance), else warns at `max_steps`. `sample_pixels_of`
+    gives the same posterior, for many pixels at once."""
+    check_max_steps(max_steps)
+    likelihood, p0, seed = _start(
+        model, data, ambiguity_m=ambiguity_m, bin_depth_m=bin_depth_m, ripple_m=ripple_m, rng=rng, nwalkers=nwalkers
+    )
+    log_prob = lambda thetas: likelihood.log_prob([0], np.asarray(thetas, np.float64)[None])[0]
+    sampler = EnsembleSampler(nwalkers, 3, log_prob, vectorize=True, backend=backend, moves=_moves())
+    sampler.random_state = np.random.RandomState(seed).get_state()
+    state, old_tau, converged, tau = p0, np.full(3, np.inf), False, np.full(3, np.nan)
+    while sampler.iteration < max_steps:
+        state = sampler.run_mcmc(state, batch, progress=False)
+        tau = sampler.get_autocorr_time(tol=0)
+        if _converged(sampler.iteration, tau, old_tau):
+            converged = True
+            break
+        old_tau = tau
+    return _summary(sampler.get_chain(), sampler.acceptance_fraction, tau, converged, data, ripple_m)
+
+
+def sample_pixels_of(
+    model: UniformModel,
+    data: PixelData,
+    *,
+    ambiguity_m: float,
+    bin_depth_m: float,
+    ripple_m: float,
+    rng: np.random.Generator,
+    nwalkers: int = 32,
+    batch: int = 250,
+    max_steps: int = 20000,
+    done=None,
+) -> list[Posterior]:
+    """emcee posteriors of every pixel of `data` (PixelData with a leading pixel axis): for
+    each pixel the posterior `sample_pixel` gives (its start drawn from `rng` in pixel order,
+    its chain emcee's to the bit), but up to `LOCKSTEP_PIXELS` pixels stepped together
+    (`ensemble.LockstepEnsembles`), a finished pixel's place taken by the next.
+    `done(count)` is called as pixels finish."""
+    check_max_steps(max_steps)
+    count = int(np.shape(data.status)[0])
+    pixels = [jax.tree.map(lambda x, p=p: x[p], data) for p in range(count)]
+    geometry = dict(ambiguity_m=ambiguity_m, bin_depth_m=bin_depth_m, ripple_m=ripple_m)
+    likelihoods, starts, seeds = zip(*(_start(model, d, **geometry, rng=rng, nwalkers=nwalkers) for d in pixels))
+    sampler = LockstepEnsembles(PixelLikelihoods.stack(list(likelihoods)).log_prob, np.stack(starts), seeds, _moves())
+    old_tau, tau = np.full((count, 3), np.inf), np.full((count, 3), np.nan)
+    posts: dict[int, Posterior] = {}
+    waiting, active = list(range(count))[::-1], []
+    while waiting or active:
+        while waiting and len(active) < LOCKSTEP_PIXELS:
+            active.append(waiting.pop())
+        sampler.run(np.asarray(active), batch)
+        going = []
+        for t in active:
+            tau[t] = integrated_times(sampler.chain(t))
+            converged = _converged(int(sampler.iteration[t]), tau[t], old_tau[t])
+            if converged or sampler.iteration[t] >= max_steps:
+                accepted = sampler.acceptance_fraction(t)
+                posts[t] = _summary(sampler.chain(t), accepted, tau[t], converged, pixels[t], ripple_m)
+                sampler.release(t)
+                if done is not None:
+                    done(1)
+            else:
+                old_tau[t] = tau[t]
+                going.append(t)
+        active = going
+    return [posts[t] for t in range(count)]
 
 
 def sample_pixels(
@@ -416,21 +487,15 @@ def sample_pixels(
     flat = frames.reshape(4, frames.shape[1], -1)
     count = flat.shape[-1] if pixels is None else min(pixels, flat.shape[-1])
     data = pixel_data(plan, jnp.asarray(flat[:, :, :count]), options.window_bins)
-    rng = np.random.default_rng(0) if rng is None else rng
-    posts = []
     with warnings.catch_warnings():
         if quiet:
             warnings.simplefilter("ignore")
-        for p in range(count):
-            posts.append(
-                sample_pixel(
-                    plan.model,
-                    jax.tree.map(lambda x, p=p: x[p], data),
-                    ambiguity_m=plan.geometry.ambiguity_m,
-                    bin_depth_m=plan.geometry.bin_depth_m,
-                    ripple_m=plan.geometry.ripple_m,
-                    rng=rng,
-                    max_steps=max_steps,
-                )
-            )
-    return posts
+        return sample_pixels_of(
+            plan.model,
+            data,
+            ambiguity_m=plan.geometry.ambiguity_m,
+            bin_depth_m=plan.geometry.bin_depth_m,
+            ripple_m=plan.geometry.ripple_m,
+            rng=np.random.default_rng(0) if rng is None else rng,
+            max_steps=max_steps,
+        )

@@ -218,7 +218,7 @@ def test_acceptance_in_one_draw_walks_emcees_own_chains():
     Metropolis factors are not zero), on a two-mode target with walkers proposed outside it."""
     import emcee
 
-    from cohflash_jax.uncertainty import AcceptanceInOneDraw, DEMove, EnsembleSampler
+    from cohflash_jax.ensemble import AcceptanceInOneDraw, DEMove, EnsembleSampler
 
     class Snooker(AcceptanceInOneDraw, emcee.moves.DESnookerMove):
         pass
@@ -243,6 +243,86 @@ def test_acceptance_in_one_draw_walks_emcees_own_chains():
     assert 0.1 < got[2].mean() < 0.9 and np.isfinite(got[1]).all()
 
 
+def test_lockstep_ensembles_walk_each_targets_own_emcee_chain():
+    """`LockstepEnsembles` steps several targets together, each from its own seed: each
+    target's chain, log-probabilities and acceptance must be those emcee's sampler walks for
+    it alone, to the bit, with both moves drawn, some targets stepped longer than others (as a
+    posterior run retires converged pixels) and a target that starts later."""
+
+    from cohflash_jax.ensemble import DEMove, EnsembleSampler, LockstepEnsembles, SnookerMove
+
+    centres = np.array([-1.0, 0.0, 0.5, 2.0])
+
+    def log_prob(targets, x):  # (n, k, 3) → (n, k): two modes a target, −inf beyond |x₀ − c| = 2.5
+        shift = x - centres[np.asarray(targets)][:, None, None]
+        modes = np.logaddexp(-0.5 * np.sum((shift - 1) ** 2, axis=-1), -2.0 * np.sum((shift + 1) ** 2, axis=-1))
+        return np.where(np.abs(shift[..., 0]) < 2.5, modes, -np.inf)
+
+    starts = np.random.default_rng(0).normal(0.0, 0.5, (4, 16, 3)) + centres[:, None, None]
+    seeds = [7, 8, 9, 10]
+    moves = lambda: [(DEMove(), 0.6), (SnookerMove(), 0.4)]
+    lockstep = LockstepEnsembles(log_prob, starts, seeds, moves())
+    lockstep.run(np.arange(3), 150)
+    lockstep.run(np.array([0, 2, 3]), 100)  # target 1 retired, target 3 starts
+    lockstep.run(np.array([2]), 50)
+    for t, steps in enumerate((250, 150, 300, 100)):
+        alone = EnsembleSampler(16, 3, lambda x, t=t: log_prob([t], x[None])[0], vectorize=True, moves=moves())
+        alone.random_state = np.random.RandomState(seeds[t]).get_state()
+        alone.run_mcmc(starts[t], steps)
+        np.testing.assert_array_equal(lockstep.chain(t), alone.get_chain())
+        np.testing.assert_array_equal(lockstep.log_prob[t], alone.get_log_prob()[-1])
+        np.testing.assert_array_equal(lockstep.acceptance_fraction(t), alone.acceptance_fraction)
+    assert 0.1 < np.mean([lockstep.acceptance_fraction(t) for t in range(4)]) < 0.9
+
+
+def test_integrated_times_are_emcees():
+    """`integrated_times` takes every walker's transform in one call: the same τ as emcee's
+    `autocorr.integrated_time`, to the bit, for short, power-of-two and long chains."""
+    import emcee
+
+    from cohflash_jax.ensemble import integrated_times
+
+    rng = np.random.default_rng(1)
+    for steps in (2, 250, 256, 257, 1750):
+        chain = np.cumsum(rng.normal(size=(steps, 32, 3)), axis=0) * [1.0, 1e3, 1e-3]
+        np.testing.assert_array_equal(integrated_times(chain), emcee.autocorr.integrated_time(chain, tol=0))
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning", "ignore::UserWarning")
+def test_pixels_sampled_together_get_the_posteriors_of_pixels_sampled_alone(paper_instrument):
+    """`sample_pixels_of` (the pixels stepped together) and `sample_pixel` (emcee's own
+    sampler, a pixel at a time) give each pixel the same posterior from the same seed: samples,
+    intervals, τ, acceptance and steps, where one pixel converges sooner than another and a
+    third, near the threshold, never does."""
+    from cohflash_jax.reconstruct import ReconstructOptions, build_plan
+    from cohflash_jax.uncertainty import pixel_data, sample_pixel, sample_pixels_of
+
+    inst = paper_instrument
+    scene = cf.from_arrays(np.full((1, 3), 30.5), np.array([[0.5, 0.3, 0.004]]), effects=NOISE)
+    frames = cf.simulate(scene, inst, 1, 3, jax.random.key(5))
+    options = ReconstructOptions(method="ml")
+    plan = build_plan(inst, options, float(inst.sensor.adc_max_dn))
+    data = pixel_data(plan, jax.numpy.asarray(np.asarray(frames).reshape(4, N_FRAMES, -1)), options.window_bins)
+    g = plan.geometry
+    geometry = dict(ambiguity_m=g.ambiguity_m, bin_depth_m=g.bin_depth_m, ripple_m=g.ripple_m)
+    together = sample_pixels_of(plan.model, data, **geometry, rng=np.random.default_rng(4), max_steps=1500)
+    rng = np.random.default_rng(4)
+    alone = [
+        sample_pixel(plan.model, jax.tree.map(lambda x, p=p: x[p], data), **geometry, rng=rng, max_steps=1500)
+        for p in range(3)
+    ]
+    for a, b in zip(together, alone):
+        np.testing.assert_array_equal(a.samples, b.samples)
+        assert (a.interval68_m, a.interval95_m, a.steps, a.converged) == (
+            b.interval68_m,
+            b.interval95_m,
+            b.steps,
+            b.converged,
+        )
+        np.testing.assert_array_equal([a.autocorr_steps, a.acceptance], [b.autocorr_steps, b.acceptance])
+    assert [(p.steps, p.converged) for p in together] == [(1000, True), (1500, True), (1500, False)]
+
+
 def test_the_vectorised_snooker_move_proposes_as_emcees_own():
     """`SnookerMove` draws emcee's `DESnookerMove` proposal for all walkers at once: from the
     same walkers and complementary sub-ensembles, 4,000 proposals each, the two laws of every
@@ -251,7 +331,7 @@ def test_the_vectorised_snooker_move_proposes_as_emcees_own():
     import emcee
     from scipy.stats import ks_2samp
 
-    from cohflash_jax.uncertainty import SnookerMove
+    from cohflash_jax.ensemble import SnookerMove
 
     rng = np.random.default_rng(3)
     walkers = rng.normal(size=(8, 3)) * [1.0, 5.0, 0.2]
