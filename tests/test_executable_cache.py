@@ -104,7 +104,9 @@ def test_quick_compiled_programs_are_kept_apart_and_agree_with_optimised_ones():
 def test_small_captures_of_one_bucket_and_methods_of_one_capture_share_programs():
     """A region of interest is padded to its pixel bucket (`engine.pixel_bucket`), so captures
     of 5×5 and 6×6 pixels run the same programs; and the I/Q programs take the plan's I/Q stage
-    alone, so a second method on the same capture makes its inversion program only. The padded
+    alone, so a second method on the same capture makes its inversion program only (and the
+    inversion programs take no I/Q stage, so another saturation level makes its I/Q program
+    only). The padded
     pixels change nothing: the 5×5 capture's depths equal those of its pixels reconstructed
     within a larger one."""
     import jax
@@ -130,6 +132,13 @@ def test_small_captures_of_one_bucket_and_methods_of_one_capture_share_programs(
     before = made()
     reconstruct_array(frames, inst, ReconstructOptions(method="interp", progress=False))
     assert made() == before + 1, "a second method made more than its inversion program"
+    # and the inversion programs take the plan without its I/Q stage (`programs.inversion_plan`):
+    # a saturation level (a capture's ADC) makes its I/Q program only, the same depths
+    before = made()
+    deeper = reconstruct_array(frames, inst, dft, saturation_dn=65535.0)
+    assert made() == before + 1, "another saturation level made more than its I/Q program"
+    for name in ("depth_m", "sigma_m", "fit_status"):
+        np.testing.assert_array_equal(deeper[name], six[name])
 
 
 def test_a_new_system_delay_or_threshold_runs_the_programs_already_compiled():

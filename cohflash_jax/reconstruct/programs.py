@@ -15,6 +15,7 @@ counts, and the fusion costs nothing. Timings of each split: docs/performance.md
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -35,16 +36,25 @@ def process_tile(plan: TilePlan, frames, dark, data_status=None, gain=None, carr
     `carrier_phase_rad` (N,): a known carrier drift common to all pixels, removed first.
     Three programs for a long sweep (`SPLIT_AXIS_MIN_FRAMES`; four with a tracked carrier), two
     for a short one, dispatched asynchronously (none waits for its result)."""
-    if frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES and not plan.iq.tracking:
-        (c, s, noise_var, total_var), flags = axis_and_checks(plan.iq, frames, dark, gain, carrier_phase_rad)
-        r = rotated_from_frames(plan.iq, frames, dark, c, s, gain, carrier_phase_rad)
+    stage, plan = plan.iq, inversion_plan(plan)
+    if frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES and not stage.tracking:
+        (c, s, noise_var, total_var), flags = axis_and_checks(stage, frames, dark, gain, carrier_phase_rad)
+        r = rotated_from_frames(stage, frames, dark, c, s, gain, carrier_phase_rad)
         return invert_sequence(plan, r, noise_var, total_var, flags, data_status)
     if frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES:
-        i, q, flags = iq_and_checks(plan.iq, frames, dark, gain, carrier_phase_rad)
+        i, q, flags = iq_and_checks(stage, frames, dark, gain, carrier_phase_rad)
         c, s, noise_var, total_var = carrier_axis_program(i, q)
         return invert_sequence(plan, rotate_program(i, q, c, s), noise_var, total_var, flags, data_status)
-    i, q, (c, s, noise_var, total_var), flags = iq_and_carrier_axis(plan.iq, frames, dark, gain, carrier_phase_rad)
+    i, q, (c, s, noise_var, total_var), flags = iq_and_carrier_axis(stage, frames, dark, gain, carrier_phase_rad)
     return rotate_and_invert(plan, i, q, c, s, noise_var, total_var, flags, data_status)
+
+
+def inversion_plan(plan: TilePlan) -> TilePlan:
+    """The plan as the inversion programs take it: without its I/Q stage, which only the I/Q
+    programs read (the hybrid's matrices, the saturation level, the input's type). Captures
+    that differ only there (another ADC depth, a registered capture's resampled frames, an
+    in-memory array) then run the inversion programs already compiled."""
+    return eqx.tree_at(lambda p: p.iq, plan, None)
 
 
 rotate_program = async_filter_jit(rotate_onto_axis)
