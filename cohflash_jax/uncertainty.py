@@ -265,9 +265,18 @@ def check_max_steps(max_steps: int):
 # between modes): on the high-SNR planar target τ fell so that chains converge in 1500–2000
 # steps against 2500–3000 with the default stretch move, at the same widths
 MOVE_WEIGHTS = (0.8, 0.2)
-# a posterior run steps at most this many pixels together (`LockstepEnsembles`): each keeps its
-# whole chain until it ends (1.5 MB a pixel at 2,000 steps of 32 walkers)
+# a posterior run steps at most this many pixels together (`LockstepEnsembles`), and fewer where
+# their chains could hold more than `LOCKSTEP_CHAIN_BYTES` at `max_steps`: each pixel keeps its
+# whole chain until it ends (1.5 MB at 2,000 steps of 32 walkers, 15 MB at 20,000)
 LOCKSTEP_PIXELS = 32
+LOCKSTEP_CHAIN_BYTES = 512 * 2**20
+
+
+def lockstep_pixels(max_steps: int, nwalkers: int, batch: int) -> int:
+    """How many pixels `sample_pixels_of` steps together: `LOCKSTEP_PIXELS`, fewer where their
+    chains (grown a batch of steps at a time, float64) could pass `LOCKSTEP_CHAIN_BYTES`."""
+    steps = batch * -(-max_steps // batch)
+    return max(1, min(LOCKSTEP_PIXELS, LOCKSTEP_CHAIN_BYTES // (steps * nwalkers * len(PARAMETERS) * 8)))
 
 
 def _moves():
@@ -434,7 +443,7 @@ def sample_pixels_of(
     """emcee posteriors of every pixel of `data` (PixelData with a leading pixel axis): for
     each pixel the posterior `sample_pixel` gives (its start drawn from `rng` in pixel order,
     its chain emcee's to the bit), but up to `LOCKSTEP_PIXELS` pixels stepped together
-    (`ensemble.LockstepEnsembles`), a finished pixel's place taken by the next.
+    (`ensemble.LockstepEnsembles`, `lockstep_pixels`), a finished pixel's place taken by the next.
     `done(count)` is called as pixels finish."""
     check_max_steps(max_steps)
     count = int(np.shape(data.status)[0])
@@ -444,9 +453,9 @@ def sample_pixels_of(
     sampler = LockstepEnsembles(PixelLikelihoods.stack(list(likelihoods)).log_prob, np.stack(starts), seeds, _moves())
     old_tau, tau = np.full((count, 3), np.inf), np.full((count, 3), np.nan)
     posts: dict[int, Posterior] = {}
-    waiting, active = list(range(count))[::-1], []
+    waiting, active, together = list(range(count))[::-1], [], lockstep_pixels(max_steps, nwalkers, batch)
     while waiting or active:
-        while waiting and len(active) < LOCKSTEP_PIXELS:
+        while waiting and len(active) < together:
             active.append(waiting.pop())
         sampler.run(np.asarray(active), batch)
         going = []
