@@ -120,27 +120,36 @@ class LockstepEnsembles:
     run for P independent targets at once, stepped together.
 
     `log_prob(targets, thetas)`: the log-probabilities (n, k) of walkers `thetas` (n, k, d) of
-    the n `targets` (indices into the P). `initial` (P, W, d): each target's walkers; `seeds`:
-    each target's `RandomState` seed, as `EnsembleSampler.random_state` would be set.
+    the n `targets` (indices into the P). Each target is started (`start`: its walkers and its
+    `RandomState` seed, as `EnsembleSampler.random_state` would be set) before it is run; a
+    target may start while others run.
 
     Every step of a target draws from its own state, in emcee's order: the move, the split,
     and for each sub-ensemble the proposal and then the acceptance uniforms. So its chain,
     log-probabilities and acceptance are emcee's, to the bit (tested). `run` steps any subset
-    of the targets (those still sampling), as `run_mcmc` would step each."""
+    of the started targets (those still sampling), as `run_mcmc` would step each."""
 
-    def __init__(self, log_prob, initial, seeds, moves):
+    def __init__(self, log_prob, targets: int, walkers: int, ndim: int, moves):
         self.log_prob_fn = log_prob
         self.moves = [move for move, _ in moves]
         weights = np.atleast_1d([weight for _, weight in moves]).astype(float)
         weights /= np.sum(weights)
         self.move_cdf = weights.cumsum() / weights.cumsum()[-1]  # as `RandomState.choice` takes them
-        self.randoms = [np.random.RandomState(int(seed)) for seed in seeds]
-        self.coords = np.array(initial, np.float64)
-        targets, walkers, ndim = self.coords.shape
-        self.log_prob = self._log_prob(np.arange(targets), self.coords)
+        self.randoms: list[np.random.RandomState | None] = [None] * targets
+        self.coords = np.full((targets, walkers, ndim), np.nan)
+        self.log_prob = np.full((targets, walkers), np.nan)
         self.accepted = np.zeros((targets, walkers))
         self.iteration = np.zeros(targets, dtype=int)
         self._blocks: list[list[np.ndarray]] = [[] for _ in range(targets)]
+
+    def start(self, targets, initial, seeds):
+        """Start `targets` (n,) from their walkers `initial` (n, W, d), each with its seed: their
+        log-probabilities are taken now, as emcee's `run_mcmc` takes a start's."""
+        targets = np.atleast_1d(np.asarray(targets, dtype=int))
+        for t, seed in zip(targets, np.atleast_1d(seeds)):
+            self.randoms[t] = np.random.RandomState(int(seed))
+        self.coords[targets] = initial
+        self.log_prob[targets] = self._log_prob(targets, self.coords[targets])
 
     def _log_prob(self, targets, thetas):
         if not np.all(np.isfinite(thetas)):
@@ -154,6 +163,8 @@ class LockstepEnsembles:
         """`steps` steps of each of `targets` (an index array), its states stored."""
         targets = np.asarray(targets, dtype=int)
         for t in targets:
+            if self.randoms[t] is None:
+                raise ValueError(f"target {t} was not started")
             if not walkers_independent(self.coords[t]):
                 raise ValueError(
                     "Initial state has a large condition number. Make sure that your walkers are "

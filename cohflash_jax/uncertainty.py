@@ -161,6 +161,12 @@ class PixelLikelihoods:
         }
         return dataclasses.replace(pixels[0], **joined)
 
+    def put(self, slot: int, pixel: PixelLikelihoods):
+        """Hold one pixel's log-posterior (`pixel_likelihood`) at `slot`, in place."""
+        for f in dataclasses.fields(self):
+            if isinstance(getattr(self, f.name), np.ndarray):
+                getattr(self, f.name)[slot] = getattr(pixel, f.name)[0]
+
     def log_prob(self, pixels, thetas):
         """Log-posterior (n, K) of walkers `thetas` (n, K, 3) of the `pixels` (n,)."""
         pixels = np.asarray(pixels)[:, None]
@@ -447,16 +453,29 @@ def sample_pixels_of(
     `done(count)` is called as pixels finish."""
     check_max_steps(max_steps)
     count = int(np.shape(data.status)[0])
-    pixels = [jax.tree.map(lambda x, p=p: x[p], data) for p in range(count)]
+    pixel = lambda p: jax.tree.map(lambda x: x[p], data)
     geometry = dict(ambiguity_m=ambiguity_m, bin_depth_m=bin_depth_m, ripple_m=ripple_m)
-    likelihoods, starts, seeds = zip(*(_start(model, d, **geometry, rng=rng, nwalkers=nwalkers) for d in pixels))
-    sampler = LockstepEnsembles(PixelLikelihoods.stack(list(likelihoods)).log_prob, np.stack(starts), seeds, _moves())
+    together = min(count, lockstep_pixels(max_steps, nwalkers, batch))
+    # the running pixels' log-posteriors, a slot each; a pixel's start (drawn from `rng`) is
+    # made as it takes a slot, so `rng` is drawn in pixel order and only running pixels' tables are held
+    slots: PixelLikelihoods | None = None
+    slot_of, free = np.zeros(count, dtype=int), list(range(together))[::-1]
+    sampler = LockstepEnsembles(
+        lambda targets, thetas: slots.log_prob(slot_of[targets], thetas), count, nwalkers, len(PARAMETERS), _moves()
+    )
     old_tau, tau = np.full((count, 3), np.inf), np.full((count, 3), np.nan)
     posts: dict[int, Posterior] = {}
-    waiting, active, together = list(range(count))[::-1], [], lockstep_pixels(max_steps, nwalkers, batch)
+    waiting, active = list(range(count))[::-1], []
     while waiting or active:
-        while waiting and len(active) < together:
-            active.append(waiting.pop())
+        while waiting and free:
+            t = waiting.pop()
+            likelihood, start, seed = _start(model, pixel(t), **geometry, rng=rng, nwalkers=nwalkers)
+            if slots is None:
+                slots = PixelLikelihoods.stack([likelihood] * together)
+            slot_of[t] = free.pop()
+            slots.put(slot_of[t], likelihood)
+            sampler.start(t, start[None], seed)
+            active.append(t)
         sampler.run(np.asarray(active), batch)
         going = []
         for t in active:
@@ -464,8 +483,9 @@ def sample_pixels_of(
             converged = _converged(int(sampler.iteration[t]), tau[t], old_tau[t])
             if converged or sampler.iteration[t] >= max_steps:
                 accepted = sampler.acceptance_fraction(t)
-                posts[t] = _summary(sampler.chain(t), accepted, tau[t], converged, pixels[t], ripple_m)
+                posts[t] = _summary(sampler.chain(t), accepted, tau[t], converged, pixel(t), ripple_m)
                 sampler.release(t)
+                free.append(slot_of[t])
                 if done is not None:
                     done(1)
             else:

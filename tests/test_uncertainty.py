@@ -261,9 +261,11 @@ def test_lockstep_ensembles_walk_each_targets_own_emcee_chain():
     starts = np.random.default_rng(0).normal(0.0, 0.5, (4, 16, 3)) + centres[:, None, None]
     seeds = [7, 8, 9, 10]
     moves = lambda: [(DEMove(), 0.6), (SnookerMove(), 0.4)]
-    lockstep = LockstepEnsembles(log_prob, starts, seeds, moves())
+    lockstep = LockstepEnsembles(log_prob, 4, 16, 3, moves())
+    lockstep.start(np.arange(3), starts[:3], seeds[:3])
     lockstep.run(np.arange(3), 150)
-    lockstep.run(np.array([0, 2, 3]), 100)  # target 1 retired, target 3 starts
+    lockstep.start(3, starts[3:], seeds[3])
+    lockstep.run(np.array([0, 2, 3]), 100)  # target 1 retired, target 3 started
     lockstep.run(np.array([2]), 50)
     for t, steps in enumerate((250, 150, 300, 100)):
         alone = EnsembleSampler(16, 3, lambda x, t=t: log_prob([t], x[None])[0], vectorize=True, moves=moves())
