@@ -133,7 +133,8 @@ def _electron_gradients(instrument, returns, effects):
         )
         return jnp.sum((e[0] - e[2]) ** 2 + (e[3] - e[1]) ** 2)
 
-    return eqx.filter_grad(loss)((cf.differentiable(instrument), returns))
+    # one compiled program a case, not hundreds of operations compiled one by one
+    return eqx.filter_jit(eqx.filter_grad(loss))((cf.differentiable(instrument), returns))
 
 
 @pytest.mark.parametrize("case", ["zero_echo", "index_to_zero", "high_order"])

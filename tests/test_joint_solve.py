@@ -94,7 +94,7 @@ def test_map_sigma_is_the_whole_covariance_propagated_and_one_program_serves_eve
     pix = np.stack(np.meshgrid(np.linspace(0, 639, 5), np.linspace(0, 479, 4)), -1).reshape(-1, 2)
     for camera, distance, mirrored in [(1, 450.0, False), (3, 900.0, True)]:
         fn = joint.map_function(LAYOUT, camera, distance, 640 if mirrored else None)
-        jac = np.asarray(jax.jacfwd(fn)(jnp.asarray(r.params), jnp.asarray(pix)))
+        jac = np.asarray(jax.jit(jax.jacfwd(fn))(jnp.asarray(r.params), jnp.asarray(pix)))  # one program, not op by op
         assert np.count_nonzero(np.abs(jac).sum(axis=(0, 1))) == 24
         cov = np.einsum("pin,nm,pjm->pij", jac, r.covariance, jac)
         whole = np.sqrt(np.linalg.eigvalsh(cov)[:, -1])
