@@ -167,6 +167,10 @@ class PixelLikelihoods:
             if isinstance(getattr(self, f.name), np.ndarray):
                 getattr(self, f.name)[slot] = getattr(pixel, f.name)[0]
 
+    def first_pixel_log_prob(self, thetas):
+        """The first pixel's log-posterior of walkers (B, 3) → (B,): emcee's vectorised form."""
+        return self.log_prob([0], np.asarray(thetas, np.float64)[None])[0]
+
     def log_prob(self, pixels, thetas):
         """Log-posterior (n, K) of walkers `thetas` (n, K, 3) of the `pixels` (n,)."""
         pixels = np.asarray(pixels)[:, None]
@@ -231,11 +235,7 @@ def make_log_prob(
     likelihood = pixel_likelihood(
         model, data, depth_half_range_m=depth_half_range_m, ambiguity_m=ambiguity_m, ripple_m=ripple_m
     )
-
-    def log_prob(thetas):
-        return likelihood.log_prob([0], np.asarray(thetas, np.float64)[None])[0]
-
-    return log_prob
+    return likelihood.first_pixel_log_prob
 
 
 @dataclasses.dataclass
@@ -305,7 +305,7 @@ def _start(
     likelihood = pixel_likelihood(
         model, data, depth_half_range_m=half_range, ambiguity_m=ambiguity_m, ripple_m=ripple_m
     )
-    log_prob = lambda thetas: likelihood.log_prob([0], thetas[None])[0]
+    log_prob = likelihood.first_pixel_log_prob
     amp0 = (
         float(data.ml_amplitude)
         if np.isfinite(data.ml_amplitude) and data.ml_amplitude > 0
@@ -419,8 +419,9 @@ def sample_pixel(
     likelihood, p0, seed = _start(
         model, data, ambiguity_m=ambiguity_m, bin_depth_m=bin_depth_m, ripple_m=ripple_m, rng=rng, nwalkers=nwalkers
     )
-    log_prob = lambda thetas: likelihood.log_prob([0], np.asarray(thetas, np.float64)[None])[0]
-    sampler = EnsembleSampler(nwalkers, 3, log_prob, vectorize=True, backend=backend, moves=_moves())
+    sampler = EnsembleSampler(
+        nwalkers, 3, likelihood.first_pixel_log_prob, vectorize=True, backend=backend, moves=_moves()
+    )
     sampler.random_state = np.random.RandomState(seed).get_state()
     state, old_tau, converged, tau = p0, np.full(3, np.inf), False, np.full(3, np.nan)
     while sampler.iteration < max_steps:
