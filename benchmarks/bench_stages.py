@@ -122,7 +122,7 @@ stages = {
     "rotated sequence (I/Q again)": timed(programs.rotated_from_frames, plan.iq, frames, dark, c, s),
     "coarse stage (FFT, detection)": timed(coarse, plan, r),
 }
-inversion = timed(programs.invert_sequence, plan, r, noise_var, total_var, flags)
+inversion = timed(programs.invert_sequence, programs.inversion_plan(plan), r, noise_var, total_var, flags)
 stages["estimator (inversion − coarse)"] = max(inversion - stages["coarse stage (FFT, detection)"], 0.0)
 print(json.dumps({"first run": runs[0], "second run": runs[1], "read pass": read, "write depth file": write,
                   **stages}))
