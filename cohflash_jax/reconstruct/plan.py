@@ -41,6 +41,11 @@ class IQStage(eqx.Module):
     tracking: bool = eqx.field(static=True)
     track_window: int = eqx.field(static=True)
 
+    @property
+    def real_dtype(self):
+        """The type of the stage's arithmetic (`dtype`) as a JAX type."""
+        return jnp.float64 if self.dtype == "float64" else jnp.float32
+
 
 class TilePlan(eqx.Module):
     """Everything a sub-tile's programs need (`reconstruct.programs`)."""

@@ -100,9 +100,8 @@ def frame_extremes(frames):
 
 def frame_values(stage: IQStage, frames):
     """The frames in the stage's arithmetic type, a non-finite value as 0 (flagged apart)."""
-    real = jnp.float64 if stage.dtype == "float64" else jnp.float32
     floating = jnp.issubdtype(frames.dtype, jnp.floating)
-    return (jnp.where(jnp.isfinite(frames), frames, 0.0) if floating else frames).astype(real)
+    return (jnp.where(jnp.isfinite(frames), frames, 0.0) if floating else frames).astype(stage.real_dtype)
 
 
 def stage_iq(stage: IQStage, values, dark, gain=None, carrier_phase_rad=None):
@@ -117,7 +116,7 @@ def _checks_and_iq(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=No
     """Data checks and I/Q: frames (4, N, P) → I, Q (N, P) (drift removed where asked) and the
     data flags (dead, saturated, finite), each (P,). It takes the plan's I/Q stage alone, so
     plans that differ only beyond it (another method, sweep geometry or policy) share it."""
-    real = jnp.float64 if stage.dtype == "float64" else jnp.float32
+    real = stage.real_dtype
     floating = jnp.issubdtype(frames.dtype, jnp.floating)
     finite = jnp.all(jnp.isfinite(frames), axis=(0, 1)) if floating else jnp.ones(frames.shape[-1], bool)
     values = frame_values(stage, frames)
