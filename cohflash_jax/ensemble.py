@@ -140,7 +140,7 @@ class LockstepEnsembles:
         self.log_prob = np.full((targets, walkers), np.nan)
         self.accepted = np.zeros((targets, walkers))
         self.iteration = np.zeros(targets, dtype=int)
-        self._blocks: list[list[np.ndarray]] = [[] for _ in range(targets)]
+        self._chains: list[np.ndarray | None] = [None] * targets  # each target's stored states
 
     def start(self, targets, initial, seeds):
         """Start `targets` (n,) from their walkers `initial` (n, W, d), each with its seed: their
@@ -180,8 +180,8 @@ class LockstepEnsembles:
                     accepted[group] = self._propose(move, targets[group])
             self.accepted[targets] += accepted
             block[:, step] = self.coords[targets]
-        for i, t in enumerate(targets):
-            self._blocks[t].append(block[i])
+        for i, t in enumerate(targets):  # grown a run at a time, as emcee's backend grows
+            self._chains[t] = block[i] if self._chains[t] is None else np.concatenate([self._chains[t], block[i]])
         self.iteration[targets] += steps
 
     def _propose(self, move, targets):
@@ -216,14 +216,15 @@ class LockstepEnsembles:
 
     def chain(self, target: int) -> np.ndarray:
         """Target's stored states (steps, W, d), as emcee's `get_chain()`."""
-        return np.concatenate(self._blocks[target]) if self._blocks[target] else np.empty((0,) + self.coords.shape[1:])
+        chain = self._chains[target]
+        return np.empty((0,) + self.coords.shape[1:]) if chain is None else chain
 
     def acceptance_fraction(self, target: int) -> np.ndarray:
         return self.accepted[target] / float(self.iteration[target])
 
     def release(self, target: int):
         """Forget a finished target's chain (its memory)."""
-        self._blocks[target] = []
+        self._chains[target] = None
 
 
 def integrated_times(chain: np.ndarray, c: float = 5) -> np.ndarray:
