@@ -665,6 +665,30 @@ def prefetch_for_cli(argv) -> bool:
         return False
 
 
+def cpu_flags() -> set[str]:
+    """The CPU's feature flags as /proc/cpuinfo lists them (empty where it cannot be read)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                return set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return set()
+
+
+def xla_cpu_has_avx512() -> bool:
+    """Whether XLA's CPU code may use AVX-512's byte and word instructions here: the CPU has
+    them (avx512bw) and XLA_FLAGS does not hold XLA to a narrower ISA (`--xla_cpu_max_isa`).
+    Some reductions vectorise under AVX-512 only, and programs choose their form by it (the
+    executable cache's key holds the CPU's features and XLA_FLAGS)."""
+    if "avx512bw" not in cpu_flags():
+        return False
+    for flag in os.environ.get("XLA_FLAGS", "").split():
+        if flag.startswith("--xla_cpu_max_isa="):
+            return flag.split("=", 1)[1].upper().startswith(("AVX512", "AMX"))
+    return True
+
+
 def cpu_description() -> str:
     """The CPU as benchmarks and studies name it: model, logical CPUs, the widest vector ISA
     XLA can use, and XLA_FLAGS where set (`--xla_cpu_max_isa=AVX2` holds XLA to AVX2)."""

@@ -20,7 +20,7 @@ from ..capture import Capture
 from ..process import take_prefaulted
 from ..runtime import QUICK_COMPILE_MAX_PIXELS, place_on_devices, stream_devices
 from .plan import TilePlan, program_plan
-from .programs import process_tile
+from .programs import inversion_plan, process_stages
 
 # CPU: the uint16 frames of a sub-tile (4·N·2 bytes a pixel) fit in ~12 MiB, so its I/Q,
 # moment and FFT passes run from cache; a tile gives at least `MIN_PIECES` sub-tiles to overlap
@@ -100,7 +100,7 @@ class PendingTile:
 
 
 class TileDispatcher:
-    """Runs `process_tile` over tiles in sub-tiles of `sub_px` pixels, each dispatched
+    """Runs `process_tile` (as `process_stages`) over tiles in sub-tiles of `sub_px` pixels, each dispatched
     asynchronously (the last padded to the same shape: one compilation per device), in turn
     on each of `stream_devices`. The plan (as `program_plan` gives it) and a known carrier
     drift are placed on every device once, when the dispatcher is made, not once per tile."""
@@ -109,7 +109,8 @@ class TileDispatcher:
         self.sub_px = sub_px
         self.devices = stream_devices()
         carrier = None if carrier_phase_rad is None else jnp.asarray(carrier_phase_rad)
-        self.placed = place_on_devices((program_plan(plan), carrier), self.devices)
+        plan = program_plan(plan)
+        self.placed = place_on_devices((plan.iq, inversion_plan(plan), carrier), self.devices)
 
     def dispatch(self, frames, dark=None, data_status=None, gain=None) -> PendingTile:
         """Dispatch a tile (4, N, P) with its per-pixel maps (4, P) and upstream status (P,)."""
@@ -132,9 +133,10 @@ class TileDispatcher:
         pieces = -(-p // sub)
         for k in range(pieces):
             device = self.devices[k % len(self.devices)] if several else None
-            plan, carrier = self.placed[k % len(self.placed)]
+            stage, plan, carrier = self.placed[k % len(self.placed)]
             parts.append(
-                process_tile(
+                process_stages(
+                    stage,
                     plan,
                     piece(frames, k, device),
                     piece(dark, k, device),

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 from ..estimate.base import estimate_detected
 from ..estimate.iq import carrier_axis, derotate, iq_from_frames, rotate_onto_axis, track_carrier_drift
 from ..fisher import reported_sigma_m
-from ..runtime import async_filter_jit
+from ..runtime import async_filter_jit, xla_cpu_has_avx512
 from .plan import IQStage, TilePlan
 from .policy import MAX_FIT_EXCURSION_BINS, classify
 
@@ -36,7 +36,12 @@ def process_tile(plan: TilePlan, frames, dark, data_status=None, gain=None, carr
     `carrier_phase_rad` (N,): a known carrier drift common to all pixels, removed first.
     Three programs for a long sweep (`SPLIT_AXIS_MIN_FRAMES`; four with a tracked carrier), two
     for a short one, dispatched asynchronously (none waits for its result)."""
-    stage, plan = plan.iq, inversion_plan(plan)
+    return process_stages(plan.iq, inversion_plan(plan), frames, dark, data_status, gain, carrier_phase_rad)
+
+
+def process_stages(stage: IQStage, plan: TilePlan, frames, dark, data_status=None, gain=None, carrier_phase_rad=None):
+    """`process_tile` with its plan already split into the I/Q stage and the `inversion_plan`:
+    a dispatcher splits it once, not once a sub-tile (a 10 Hz map has ten)."""
     if frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES and not stage.tracking:
         (c, s, noise_var, total_var), flags = axis_and_checks(stage, frames, dark, gain, carrier_phase_rad)
         r = rotated_from_frames(stage, frames, dark, c, s, gain, carrier_phase_rad)
@@ -122,14 +127,18 @@ def _checks_and_iq(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=No
     values = frame_values(stage, frames)
     # each pixel's highest and lowest value (a pixel with a non-finite value is bad data
     # whatever they are). A short sweep's program (fused with the carrier axis) takes them
-    # from the converted values its I/Q reads anyway, where the conversion is exact; a long
-    # sweep's from the frames as stored (`frame_extremes` on the CPU): measured fastest each way, under
-    # AVX-512 and AVX2 (docs/performance.md). Off the CPU, the frames' own reduction: on an
-    # H200 this program took 46 s to compile for a whole 10 240-px tile with the fold in it
+    # from the converted values its I/Q reads anyway, where the conversion is exact, or, where
+    # XLA's CPU code has AVX-512, from the stored integers (their reduction over the frames
+    # vectorises there, not under AVX2); a long sweep's from the frames as stored
+    # (`frame_extremes` on the CPU): measured fastest each way, under AVX-512 and AVX2
+    # (docs/performance.md). Off the CPU, the frames' own reduction: on an H200 this program
+    # took 46 s to compile for a whole 10 240-px tile with the fold in it
     exact = jnp.dtype(frames.dtype).itemsize <= (2 if not floating else jnp.dtype(real).itemsize)
-    if frames.shape[1] < SPLIT_AXIS_MIN_FRAMES and exact:
+    cpu = jax.default_backend() == "cpu"
+    short = frames.shape[1] < SPLIT_AXIS_MIN_FRAMES
+    if short and exact and not (cpu and not floating and xla_cpu_has_avx512()):
         high, low = jnp.max(values, axis=1), jnp.min(values, axis=1)  # (4, P)
-    elif jax.default_backend() != "cpu":
+    elif not cpu or (short and exact):
         high, low = jnp.max(frames, axis=1), jnp.min(frames, axis=1)
     else:
         high, low = frame_extremes(frames)
