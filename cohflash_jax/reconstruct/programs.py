@@ -84,8 +84,8 @@ def frame_extremes(frames):
     """Each pixel's highest and lowest value over the frames: frames (4, N, P) → (4, P) twice.
 
     Halved by elementwise max/min of the two halves of the frame axis, then reduced. XLA's
-    CPU reduction over the frame axis of 16-bit integers vectorises under AVX-512 but runs
-    scalar when held to AVX2 (12× slower: most of the long sweeps' I/Q program there);
+    CPU reduction over the frame axis of 16-bit integers vectorises under AVX-512 (used there)
+    but runs scalar when held to AVX2 (12× slower: most of the long sweeps' I/Q program there);
     elementwise max/min vectorise on both (docs/performance.md). A NaN need not propagate."""
 
     def fold(x, op, reduce):
@@ -126,19 +126,19 @@ def _checks_and_iq(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=No
     finite = jnp.all(jnp.isfinite(frames), axis=(0, 1)) if floating else jnp.ones(frames.shape[-1], bool)
     values = frame_values(stage, frames)
     # each pixel's highest and lowest value (a pixel with a non-finite value is bad data
-    # whatever they are). A short sweep's program (fused with the carrier axis) takes them
-    # from the converted values its I/Q reads anyway, where the conversion is exact, or, where
-    # XLA's CPU code has AVX-512, from the stored integers (their reduction over the frames
-    # vectorises there, not under AVX2); a long sweep's from the frames as stored
-    # (`frame_extremes` on the CPU): measured fastest each way, under AVX-512 and AVX2
-    # (docs/performance.md). Off the CPU, the frames' own reduction: on an H200 this program
-    # took 46 s to compile for a whole 10 240-px tile with the fold in it
+    # whatever they are). Where XLA's CPU code has AVX-512, integer frames' own reduction over
+    # the frames vectorises, and is fastest for every sweep. Under AVX2 it runs scalar: a
+    # short sweep's program (fused with the carrier axis) takes them from the converted values
+    # its I/Q reads anyway, where the conversion is exact; a long sweep's from the frames as
+    # stored by `frame_extremes`: measured fastest each way (docs/performance.md). Off the CPU,
+    # the frames' own reduction: on an H200 this program took 46 s to compile for a whole
+    # 10 240-px tile with the fold in it
     exact = jnp.dtype(frames.dtype).itemsize <= (2 if not floating else jnp.dtype(real).itemsize)
     cpu = jax.default_backend() == "cpu"
-    short = frames.shape[1] < SPLIT_AXIS_MIN_FRAMES
-    if short and exact and not (cpu and not floating and xla_cpu_has_avx512()):
+    vectorised_integers = cpu and not floating and xla_cpu_has_avx512()
+    if frames.shape[1] < SPLIT_AXIS_MIN_FRAMES and exact and not vectorised_integers:
         high, low = jnp.max(values, axis=1), jnp.min(values, axis=1)  # (4, P)
-    elif not cpu or (short and exact):
+    elif not cpu or vectorised_integers:
         high, low = jnp.max(frames, axis=1), jnp.min(frames, axis=1)
     else:
         high, low = frame_extremes(frames)
