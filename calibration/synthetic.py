@@ -73,7 +73,8 @@ def board_poses(count: int, rng: np.random.Generator, board: Board, distance_mm:
 
 
 def camera_rays(cam: VirtualCamera, supersample: int = 2) -> np.ndarray:
-    """Unit-depth rays (S, H·W, 3) of every output pixel's sub-samples (pose-independent)."""
+    """Unit-depth rays (S, 3, H·W) of every output pixel's sub-samples (pose-independent): a
+    component of all the rays contiguous, as `render_view` reads them."""
     w, h = cam.image_size
     offs = (np.arange(supersample) + 0.5) / supersample - 0.5
     rays = []
@@ -83,7 +84,7 @@ def camera_rays(cam: VirtualCamera, supersample: int = 2) -> np.ndarray:
             pts = np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64)[:, None, :]
             norm = undistort_exact(pts, cam.camera_matrix, cam.dist_coeffs)
             rays.append(np.concatenate([norm, np.ones((norm.shape[0], 1))], axis=1))
-    return np.stack(rays)
+    return np.ascontiguousarray(np.stack(rays).transpose(0, 2, 1))
 
 
 def render_view(
@@ -112,9 +113,11 @@ def render_view(
     normal, origin = rb[:, 2], tb
     acc = np.zeros(h * w)
     for r in rays:
-        s = (origin @ normal) / (r @ normal)
-        plane = (r * s[:, None] - origin) @ rb  # board coordinates (mm), z ≈ 0
-        acc += board.shade(plane[:, 0], plane[:, 1], black, white, background) * (s > 0)
+        s = (origin @ normal) / (normal @ r)
+        # board coordinates x, y (mm) of the ray's point on the board (z ≈ 0), column by column
+        p = [r[j] * s - origin[j] for j in range(3)]
+        x, y = (p[0] * rb[0, k] + p[1] * rb[1, k] + p[2] * rb[2, k] for k in range(2))
+        acc += board.shade(x, y, black, white, background) * (s > 0)
     img = acc.reshape(h, w) / rays.shape[0] + offset
     if blur_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_px)
