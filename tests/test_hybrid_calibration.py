@@ -340,55 +340,58 @@ def test_pixels_weighted_out_count_as_if_dropped():
     offsets and the common carrier equal those of the subset alone, whatever the other pixels
     hold (here: unrelated noise and a tone of the wrong frequency)."""
     from cohflash_jax.hybrid_fit import common_carrier, fit_hybrid, fit_offsets, pixel_statistics
+    from cohflash_jax.runtime import quick_compile
 
     rng = np.random.default_rng(5)
-    n, p = 400, 40
-    used = np.ones(p, bool)
-    used[rng.choice(p, 12, replace=False)] = False
-    phases = np.radians([0.0, 93.0, 178.0, 272.0])
-    gains = np.array([1.0, 1.08, 0.93, 1.04])
-    drift = np.cumsum(rng.normal(0, 0.05, n))
-    tone = np.exp(1j * (2 * np.pi * rng.uniform(0.05, 0.2, p)[None, :] * np.arange(n)[:, None]))  # (N, P)
-    amp = rng.uniform(20, 40, p) * np.exp(1j * rng.uniform(0, 2 * np.pi, p))
-    field = amp[None, :] * tone * np.exp(1j * drift)[:, None]
-    frames = 0.5 * gains[:, None, None] * np.real(np.exp(-1j * phases)[:, None, None] * field[None])
-    frames += rng.normal(0, 0.5, frames.shape) + rng.normal(100, 5, (4, 1, p))
-    frames[:, :, ~used] = rng.normal(0, 30, (4, n, int((~used).sum())))
-    tone[:, ~used] = np.exp(1j * 0.37 * np.arange(n))[:, None]
-    port_means = frames.mean(axis=1)
-    centred = frames - port_means[:, None]
-    u = jnp.asarray(np.exp(1j * drift))
-    regressor = jnp.asarray(tone) * u[:, None]
-    stats_all = pixel_statistics(jnp.asarray(centred), regressor)
-    stats_sub = pixel_statistics(jnp.asarray(centred[:, :, used]), regressor[:, used])
-    nominal = np.radians([0.0, 90.0, 180.0, 270.0])
-    masked, alone = fit_hybrid(stats_all, nominal, None, used), fit_hybrid(stats_sub, nominal)
-    assert alone.identified and masked.identified
-    for name in ("phases_rad", "relative_gains", "phase_sigma_rad", "gain_sigma", "chi2_per_dof", "params"):
-        np.testing.assert_allclose(getattr(masked, name), getattr(alone, name), rtol=1e-9, atol=1e-12, err_msg=name)
-    np.testing.assert_allclose(masked.amplitudes[used], alone.amplitudes, rtol=1e-9)
-    assert np.all(masked.amplitudes[~used] == 0)
-    for a, b in zip(
-        fit_offsets(port_means, stats_all, masked, None)[:2],
-        fit_offsets(port_means[:, used], stats_sub, alone, None)[:2],
-    ):
-        np.testing.assert_allclose(a, b, rtol=1e-9)
-    h = jnp.asarray(0.5 * alone.relative_gains * np.exp(1j * alone.phases_rad))
-    carrier_all = common_carrier(
-        jnp.asarray(centred),
-        h,
-        jnp.asarray(masked.amplitudes),
-        jnp.asarray(tone),
-        stats_all["noise_var"],
-    )
-    carrier_sub = common_carrier(
-        jnp.asarray(centred[:, :, used]),
-        h,
-        jnp.asarray(alone.amplitudes),
-        jnp.asarray(tone[:, used]),
-        stats_sub["noise_var"],
-    )
-    np.testing.assert_allclose(np.asarray(carrier_all), np.asarray(carrier_sub), rtol=1e-7, atol=1e-9)
-    # and the drift it finds is the one put in (up to a constant phase)
-    found = np.unwrap(np.angle(np.asarray(carrier_sub) * np.exp(-1j * drift)))
-    assert np.std(found) < 0.05
+    # compiled for a short compile, as `calibrate_hybrid` compiles its fits of at most 1,024 pixels
+    with quick_compile():
+        n, p = 400, 40
+        used = np.ones(p, bool)
+        used[rng.choice(p, 12, replace=False)] = False
+        phases = np.radians([0.0, 93.0, 178.0, 272.0])
+        gains = np.array([1.0, 1.08, 0.93, 1.04])
+        drift = np.cumsum(rng.normal(0, 0.05, n))
+        tone = np.exp(1j * (2 * np.pi * rng.uniform(0.05, 0.2, p)[None, :] * np.arange(n)[:, None]))  # (N, P)
+        amp = rng.uniform(20, 40, p) * np.exp(1j * rng.uniform(0, 2 * np.pi, p))
+        field = amp[None, :] * tone * np.exp(1j * drift)[:, None]
+        frames = 0.5 * gains[:, None, None] * np.real(np.exp(-1j * phases)[:, None, None] * field[None])
+        frames += rng.normal(0, 0.5, frames.shape) + rng.normal(100, 5, (4, 1, p))
+        frames[:, :, ~used] = rng.normal(0, 30, (4, n, int((~used).sum())))
+        tone[:, ~used] = np.exp(1j * 0.37 * np.arange(n))[:, None]
+        port_means = frames.mean(axis=1)
+        centred = frames - port_means[:, None]
+        u = jnp.asarray(np.exp(1j * drift))
+        regressor = jnp.asarray(tone) * u[:, None]
+        stats_all = pixel_statistics(jnp.asarray(centred), regressor)
+        stats_sub = pixel_statistics(jnp.asarray(centred[:, :, used]), regressor[:, used])
+        nominal = np.radians([0.0, 90.0, 180.0, 270.0])
+        masked, alone = fit_hybrid(stats_all, nominal, None, used), fit_hybrid(stats_sub, nominal)
+        assert alone.identified and masked.identified
+        for name in ("phases_rad", "relative_gains", "phase_sigma_rad", "gain_sigma", "chi2_per_dof", "params"):
+            np.testing.assert_allclose(getattr(masked, name), getattr(alone, name), rtol=1e-9, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(masked.amplitudes[used], alone.amplitudes, rtol=1e-9)
+        assert np.all(masked.amplitudes[~used] == 0)
+        for a, b in zip(
+            fit_offsets(port_means, stats_all, masked, None)[:2],
+            fit_offsets(port_means[:, used], stats_sub, alone, None)[:2],
+        ):
+            np.testing.assert_allclose(a, b, rtol=1e-9)
+        h = jnp.asarray(0.5 * alone.relative_gains * np.exp(1j * alone.phases_rad))
+        carrier_all = common_carrier(
+            jnp.asarray(centred),
+            h,
+            jnp.asarray(masked.amplitudes),
+            jnp.asarray(tone),
+            stats_all["noise_var"],
+        )
+        carrier_sub = common_carrier(
+            jnp.asarray(centred[:, :, used]),
+            h,
+            jnp.asarray(alone.amplitudes),
+            jnp.asarray(tone[:, used]),
+            stats_sub["noise_var"],
+        )
+        np.testing.assert_allclose(np.asarray(carrier_all), np.asarray(carrier_sub), rtol=1e-7, atol=1e-9)
+        # and the drift it finds is the one put in (up to a constant phase)
+        found = np.unwrap(np.angle(np.asarray(carrier_sub) * np.exp(-1j * drift)))
+        assert np.std(found) < 0.05
