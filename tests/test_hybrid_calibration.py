@@ -87,10 +87,21 @@ def test_injected_errors_recovered_within_uncertainty(calibrations):
     assert 0.5 < rms < 1.6, rms
 
 
-def test_calibration_removes_depth_bias(calibrations, instrument, tmp_path):
+def test_calibration_removes_depth_bias(calibrations, instrument, tmp_path, monkeypatch):
     """A later static capture of the same instrument: without calibration every depth is off by
     the 1.9 m path offset; with the file from `cohflash calibrate hybrid` the mean error is
-    within its standard error (and 30 µm), and the fit uses the calibrated hybrid."""
+    within its standard error (and 30 µm), and the fit uses the calibrated hybrid. And the
+    block jackknife's Gauss–Newton refits give the σ that Levenberg–Marquardt refits to a
+    tight tolerance give."""
+    from cohflash_jax.hybrid_fit import modulator_stage
+
+    jackknifes = []
+    jackknife = modulator_stage.block_jackknife_sigma
+    monkeypatch.setattr(
+        modulator_stage,
+        "block_jackknife_sigma",
+        lambda value, args, blocks: jackknifes.append((value, args, blocks)) or jackknife(value, args, blocks),
+    )
     cal_path = calibrations[0][0]
     calib = tmp_path / "hybrid.json"
     assert (
@@ -111,6 +122,20 @@ def test_calibration_removes_depth_bias(calibrations, instrument, tmp_path):
         == 0
     )
     assert (tmp_path / "report.png").stat().st_size > 10_000
+    ((value, args, blocks),) = jackknifes
+    edges = np.linspace(0, args[1].shape[0], blocks + 1).astype(int)
+    start = {k: np.asarray(v, np.float64) for k, v in value.items()}
+    refits = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        weight = np.ones(args[1].shape[0])
+        weight[a:b] = 0.0
+        fitted, converged, _ = modulator_stage.solve_modulator(start, args[:-1] + (weight,), rtol=1e-9, max_steps=200)
+        assert converged
+        refits.append([float(fitted[k]) for k in modulator_stage.FREE_PARAMETERS])
+    refit_sigma = np.sqrt((blocks - 1) / blocks * np.sum((refits - np.mean(refits, axis=0)) ** 2, axis=0))
+    stepped = jackknife(value, args, blocks)
+    stepped_sigma = np.array([stepped[k] for k in modulator_stage.FREE_PARAMETERS])
+    np.testing.assert_allclose(stepped_sigma, refit_sigma, rtol=2e-3)
     later = tmp_path / "later.h5"
     scene = cf.planar(30.5, 0.5, effects=NOISE + ERRORS)
     simulate_to_file(later, scene, instrument, 8, 8, seed=11, progress=False)
