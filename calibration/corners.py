@@ -151,6 +151,21 @@ def find_corners(img8: np.ndarray, board: Board, refine_on: np.ndarray | None = 
     return corners if corners.shape[0] == board.cols * board.rows else None
 
 
+def larger_board_size(img8: np.ndarray, board: Board) -> tuple[int, int] | None:
+    """The inner-corner count (cols, rows) of a chessboard in the view with more corners than
+    `board`, in `board`'s orientation (its longer side first where `board`'s is), or None.
+
+    `findChessboardCornersSB` allowed a larger pattern than asked for (`CALIB_CB_LARGER`) finds
+    the whole board and says its size: where `--board` names part of the board, one view
+    (~0.1–0.3 s) tells the true size, where failed searches with the wrong size took every view."""
+    flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_LARGER
+    ok, _, meta = cv2.findChessboardCornersSBWithMeta(img8, board.pattern_size, flags)
+    if not ok or meta is None or meta.size <= board.cols * board.rows:
+        return None
+    small, large = sorted(meta.shape[:2])
+    return (large, small) if board.cols >= board.rows else (small, large)
+
+
 def grid_symmetries(board: Board) -> list:
     """Relabellings of a rows×cols corner grid (as index arrays into the flat corner list) that
     map the grid onto itself: identity, 180° turn, two mirrors; and on a square grid the

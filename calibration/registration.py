@@ -28,6 +28,7 @@ from .corners import (
     board_continues,
     find_corners,
     label_by_board,
+    larger_board_size,
     list_views,
     read_image,
     to_uint8,
@@ -464,6 +465,21 @@ def write_registration(path, reg: Registration) -> Path:
 
 
 # -- register ---------------------------------------------------------------------------------
+# views whose whole chessboard, larger than --board, agrees on one size before --board is refused
+LARGER_BOARD_VIEWS = 3
+
+
+def refuse_larger_board(board: Board, larger: dict) -> None:
+    """Refuse --board once `LARGER_BOARD_VIEWS` views show one larger chessboard ({(cols, rows):
+    [view files]}, `larger_board_size`), naming its size."""
+    for (cols, rows), paths in larger.items():
+        if len(paths) >= LARGER_BOARD_VIEWS:
+            raise RegistrationError(
+                f"--board {board.cols}x{board.rows} does not match the board: {len(paths)} views show a "
+                f"chessboard of {cols}x{rows} inner corners (e.g. {paths[0]}); pass --board {cols}x{rows}"
+            )
+
+
 def wrong_board(continues: list, found: int) -> bool:
     """Whether the views say --board is not the board: at least three (and a quarter of the
     `found` boards) show the pattern continuing past the grid found."""
@@ -477,6 +493,7 @@ def detect_all(view_files, board: Board, progress: bool):
     raw = [dict() for _ in view_files.files]
     failed = {}
     continues = []
+    larger = {}  # a larger board's size → the views that show it
     views = [(k, name, path) for k, files in enumerate(view_files.files) for name, path in files.items()]
     with tqdm(total=len(views), unit="view", desc="detecting corners", disable=not progress) as bar:
         for seen, (k, name, path) in enumerate(views, start=1):
@@ -498,10 +515,15 @@ def detect_all(view_files, board: Board, progress: bool):
             img8 = to_uint8(img)
             images8[k][name] = img8
             corners = find_corners(img8, board, None if img.dtype == np.uint8 else img.astype(np.float32))
+            side = None if corners is None else board_continues(img8, corners, board)
+            if corners is None or side is not None:  # no board of this size, or part of a larger one
+                size_seen = larger_board_size(img8, board)
+                if size_seen is not None:
+                    larger.setdefault(size_seen, []).append(str(path))
+                    refuse_larger_board(board, larger)
             if corners is None:
                 failed[str(path)] = "chessboard not found"
                 continue
-            side = board_continues(img8, corners, board)
             if side is not None:
                 continues.append(str(path))
                 failed[str(path)] = (
