@@ -106,7 +106,7 @@ def test_small_captures_of_one_bucket_and_methods_of_one_capture_share_programs(
     of 5×5 and 6×6 pixels run the same programs; and the I/Q programs take the plan's I/Q stage
     alone, so a second method on the same capture makes its inversion program only (and the
     inversion programs take no I/Q stage, so another saturation level makes its I/Q program
-    only). The padded
+    only; and a status array whether or not anything upstream set one). The padded
     pixels change nothing: the 5×5 capture's depths equal those of its pixels reconstructed
     within a larger one."""
     import jax
@@ -139,6 +139,25 @@ def test_small_captures_of_one_bucket_and_methods_of_one_capture_share_programs(
     assert made() == before + 1, "another saturation level made more than its I/Q program"
     for name in ("depth_m", "sigma_m", "fit_status"):
         np.testing.assert_array_equal(deeper[name], six[name])
+    # a status found upstream (a registered capture's pixels outside a CCD's view) runs the
+    # programs of a capture without one, and marks its pixels alone
+    from cohflash_jax.reconstruct.api import align_carrier, plan_and_dispatcher
+    from cohflash_jax.reconstruct.engine import sub_tile_pixels
+    from cohflash_jax.runtime import quick_compile
+    from cohflash_jax.status import Status
+
+    flat = frames.reshape(4, 96, 36)
+    _, dispatcher = plan_and_dispatcher(inst, dft, None, align_carrier(dft, inst, flat), sub_tile_pixels(36, 96))
+    status = np.zeros(36, np.int8)
+    status[[3, 20]] = Status.OUTSIDE_REGISTRATION
+    before = made()
+    with quick_compile():
+        marked = dispatcher.dispatch(flat, None, status, None).gather()
+    assert made() == before, "an upstream status made programs of its own"
+    expected = six["fit_status"].ravel().copy()
+    expected[[3, 20]] = Status.OUTSIDE_REGISTRATION
+    np.testing.assert_array_equal(marked["fit_status"], expected)
+    np.testing.assert_array_equal(marked["depth_m"], six["depth_m"].ravel())
 
 
 def test_a_new_system_delay_or_threshold_runs_the_programs_already_compiled():

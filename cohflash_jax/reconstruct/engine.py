@@ -111,6 +111,16 @@ class TileDispatcher:
         carrier = None if carrier_phase_rad is None else jnp.asarray(carrier_phase_rad)
         plan = program_plan(plan)
         self.placed = place_on_devices((plan.iq, inversion_plan(plan), carrier), self.devices)
+        self.no_status = {}  # (pixels, device) → placed zeros: "no upstream status"
+
+    def zero_status(self, pixels: int, device):
+        """A sub-tile's upstream status where there is none (all 0: nothing found upstream),
+        placed once: the inversion programs then take a status array whether or not a capture
+        has one (a registered capture's resampling has), and the two share their programs."""
+        if (pixels, device) not in self.no_status:
+            zeros = np.zeros(pixels, np.int8)
+            self.no_status[pixels, device] = jax.device_put(zeros, device) if device is not None else jnp.asarray(zeros)
+        return self.no_status[pixels, device]
 
     def dispatch(self, frames, dark=None, data_status=None, gain=None) -> PendingTile:
         """Dispatch a tile (4, N, P) with its per-pixel maps (4, P) and upstream status (P,)."""
@@ -140,7 +150,7 @@ class TileDispatcher:
                     plan,
                     piece(frames, k, device),
                     piece(dark, k, device),
-                    piece(data_status, k, device),
+                    self.zero_status(sub, device) if data_status is None else piece(data_status, k, device),
                     piece(gain, k, device),
                     carrier,
                 )
