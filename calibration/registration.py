@@ -494,6 +494,7 @@ def detect_all(view_files, board: Board, progress: bool):
     failed = {}
     continues = []
     larger = {}  # a larger board's size → the views that show it
+    confirmed = 0  # views whose grid of --board's size is the whole board
     views = [(k, name, path) for k, files in enumerate(view_files.files) for name, path in files.items()]
     with tqdm(total=len(views), unit="view", desc="detecting corners", disable=not progress) as bar:
         for seen, (k, name, path) in enumerate(views, start=1):
@@ -516,7 +517,9 @@ def detect_all(view_files, board: Board, progress: bool):
             images8[k][name] = img8
             corners = find_corners(img8, board, None if img.dtype == np.uint8 else img.astype(np.float32))
             side = None if corners is None else board_continues(img8, corners, board)
-            if corners is None or side is not None:  # no board of this size, or part of a larger one
+            # no board of this size, or part of a larger one: looked for a larger one until the
+            # board is confirmed in as many views as would refuse it (a failed view costs a search)
+            if (corners is None or side is not None) and confirmed < LARGER_BOARD_VIEWS:
                 size_seen = larger_board_size(img8, board)
                 if size_seen is not None:
                     larger.setdefault(size_seen, []).append(str(path))
@@ -535,6 +538,7 @@ def detect_all(view_files, board: Board, progress: bool):
                     break
                 continue
             raw[k][name] = corners
+            confirmed += 1
     if wrong_board(continues, sum(len(r) for r in raw)):
         raise RegistrationError(
             f"--board {board.cols}x{board.rows} does not match the board: in {len(continues)} views the chessboard "
