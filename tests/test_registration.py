@@ -57,8 +57,34 @@ def views(tmp_path_factory, rig):
 
 
 @pytest.fixture(scope="module")
-def registration(views):
-    return register(views, BOARD, progress=False)
+def cli_run(tmp_path_factory, views):
+    """`cohflash calibrate registration` of the views with a report, run once for the module:
+    (its registration as `register` returned it, the JSON file, the report, what it printed)."""
+    import contextlib
+    import io
+
+    from cohflash_calibration import registration as module
+
+    out = tmp_path_factory.mktemp("cli") / "registration.json"
+    report = out.with_name("report.png")
+    made = []
+
+    def kept(*args, **kwargs):
+        made.append(register(*args, **kwargs))
+        return made[-1]
+
+    printed = io.StringIO()
+    with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(printed):
+        patch.setattr(module, "register", kept)
+        argv = ["calibrate", "registration", "--images", *map(str, views), "--board", "9x6", "--square-mm", "25"]
+        rc = main([*argv, "--out", str(out), "--report", str(report), "--quiet"])
+    assert rc == 0 and len(made) == 1
+    return made[0], out, report, printed.getvalue()
+
+
+@pytest.fixture(scope="module")
+def registration(cli_run):
+    return cli_run[0]
 
 
 def test_recovers_intrinsics_and_poses_of_known_cameras(rig, registration):
@@ -107,27 +133,8 @@ def test_maps_match_the_true_cameras_and_xor_drops(rig, registration):
         assert after < 0.02 < before  # the paper reports 1.5–2 % after registration
 
 
-def test_cli_writes_registration_and_report_that_round_trip(tmp_path, views, capsys):
-    out, report = tmp_path / "registration.json", tmp_path / "report.png"
-    rc = main(
-        [
-            "calibrate",
-            "registration",
-            "--images",
-            *map(str, views),
-            "--board",
-            "9x6",
-            "--square-mm",
-            "25",
-            "--out",
-            str(out),
-            "--report",
-            str(report),
-            "--quiet",
-        ]
-    )
-    assert rc == 0
-    text = capsys.readouterr().out
+def test_cli_writes_registration_and_report_that_round_trip(tmp_path, cli_run):
+    _, out, report, text = cli_run
     assert "XOR misalignment" in text and "view_000.png: chessboard not found" in text and "verdict: usable" in text
     data = json.loads(out.read_text())
     assert data["format"] == "cohflash-registration" and len(data["relative_poses"]) == 3
