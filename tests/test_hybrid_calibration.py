@@ -38,16 +38,53 @@ def calibration_scene(turbulence: bool):
 
 
 @pytest.fixture(scope="module")
-def calibrations(tmp_path_factory, instrument):
-    """Calibration captures with carrier drift (three seeds) and their fits."""
-    out = []
+def calibration_runs(tmp_path_factory, instrument):
+    """Calibration captures with carrier drift (three seeds) and their fits; the first fitted
+    by `cohflash calibrate hybrid` with a report, its file, report and block-jackknife inputs
+    kept as well."""
+    from cohflash_jax import hybrid_fit
+    from cohflash_jax.hybrid_fit import modulator_stage
+
+    out, cli = [], {}
     for seed in (0, 1, 2):
         path = tmp_path_factory.mktemp("cal") / f"cal{seed}.h5"
         simulate_to_file(path, calibration_scene(True), instrument, SIZE, SIZE, seed=seed, progress=False)
         with Capture(path) as cap:
             truth = cap.truth_attrs
-        out.append((path, truth, calibrate_hybrid(path, known_distance_m=30.5, progress=False)))
-    return out
+        if seed:
+            out.append((path, truth, calibrate_hybrid(path, known_distance_m=30.5, progress=False)))
+            continue
+        results, jackknifes = [], []
+        jackknife = modulator_stage.block_jackknife_sigma
+        cli = {"file": path.with_name("hybrid.json"), "report": path.with_name("report.png"), "jackknife": jackknife}
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(
+                hybrid_fit, "calibrate_hybrid", lambda *a, **k: results.append(calibrate_hybrid(*a, **k)) or results[-1]
+            )
+            patch.setattr(
+                modulator_stage,
+                "block_jackknife_sigma",
+                lambda value, args, blocks: jackknifes.append((value, args, blocks)) or jackknife(value, args, blocks),
+            )
+            argv = ["calibrate", "hybrid", str(path), "--out", str(cli["file"]), "--known-distance-m", "30.5"]
+            assert main([*argv, "--report", str(cli["report"]), "--quiet"]) == 0
+        assert len(results) == 1
+        cli["jackknife_inputs"] = jackknifes
+        out.append((path, truth, results[0]))
+    return out, cli
+
+
+@pytest.fixture(scope="module")
+def calibrations(calibration_runs):
+    """(capture, its true parameters, `calibrate_hybrid`'s result) for each of three seeds."""
+    return calibration_runs[0]
+
+
+@pytest.fixture(scope="module")
+def cli_calibration(calibration_runs):
+    """The first seed's `cohflash calibrate hybrid` run: its file, report, the block
+    jackknife and the inputs it was called with."""
+    return calibration_runs[1]
 
 
 def _pulls(doc, truth):
@@ -87,7 +124,7 @@ def test_injected_errors_recovered_within_uncertainty(calibrations):
     assert 0.5 < rms < 1.6, rms
 
 
-def test_calibration_removes_depth_bias(calibrations, instrument, tmp_path, monkeypatch):
+def test_calibration_removes_depth_bias(calibrations, cli_calibration, instrument, tmp_path):
     """A later static capture of the same instrument: without calibration every depth is off by
     the 1.9 m path offset; with the file from `cohflash calibrate hybrid` the mean error is
     within its standard error (and 30 µm), and the fit uses the calibrated hybrid. And the
@@ -95,34 +132,9 @@ def test_calibration_removes_depth_bias(calibrations, instrument, tmp_path, monk
     tight tolerance give."""
     from cohflash_jax.hybrid_fit import modulator_stage
 
-    jackknifes = []
-    jackknife = modulator_stage.block_jackknife_sigma
-    monkeypatch.setattr(
-        modulator_stage,
-        "block_jackknife_sigma",
-        lambda value, args, blocks: jackknifes.append((value, args, blocks)) or jackknife(value, args, blocks),
-    )
-    cal_path = calibrations[0][0]
-    calib = tmp_path / "hybrid.json"
-    assert (
-        main(
-            [
-                "calibrate",
-                "hybrid",
-                str(cal_path),
-                "--out",
-                str(calib),
-                "--known-distance-m",
-                "30.5",
-                "--report",
-                str(tmp_path / "report.png"),
-                "--quiet",
-            ]
-        )
-        == 0
-    )
-    assert (tmp_path / "report.png").stat().st_size > 10_000
-    ((value, args, blocks),) = jackknifes
+    calib = cli_calibration["file"]
+    assert cli_calibration["report"].stat().st_size > 10_000
+    ((value, args, blocks),) = cli_calibration["jackknife_inputs"]
     edges = np.linspace(0, args[1].shape[0], blocks + 1).astype(int)
     start = {k: np.asarray(v, np.float64) for k, v in value.items()}
     refits = []
@@ -133,7 +145,7 @@ def test_calibration_removes_depth_bias(calibrations, instrument, tmp_path, monk
         assert converged
         refits.append([float(fitted[k]) for k in modulator_stage.FREE_PARAMETERS])
     refit_sigma = np.sqrt((blocks - 1) / blocks * np.sum((refits - np.mean(refits, axis=0)) ** 2, axis=0))
-    stepped = jackknife(value, args, blocks)
+    stepped = cli_calibration["jackknife"](value, args, blocks)
     stepped_sigma = np.array([stepped[k] for k in modulator_stage.FREE_PARAMETERS])
     np.testing.assert_allclose(stepped_sigma, refit_sigma, rtol=2e-3)
     later = tmp_path / "later.h5"
