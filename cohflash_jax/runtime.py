@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import ctypes
+import functools
 import os
 import sys
 import time
@@ -665,15 +666,23 @@ def prefetch_for_cli(argv) -> bool:
         return False
 
 
-def cpu_flags() -> set[str]:
-    """The CPU's feature flags as /proc/cpuinfo lists them (empty where it cannot be read)."""
+@functools.cache
+def cpu_model_and_flags() -> tuple[str, frozenset[str]]:
+    """The CPU's model name and feature flags as /proc/cpuinfo lists them (the platform's
+    processor name and no flags where it cannot be read)."""
+    import platform
+
+    model, flags = platform.processor() or "unknown CPU", frozenset()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
             if line.startswith("flags"):
-                return set(line.split(":", 1)[1].split())
+                flags = frozenset(line.split(":", 1)[1].split())
+                break
     except OSError:
         pass
-    return set()
+    return model, flags
 
 
 def xla_cpu_has_avx512() -> bool:
@@ -681,7 +690,7 @@ def xla_cpu_has_avx512() -> bool:
     them (avx512bw) and XLA_FLAGS does not hold XLA to a narrower ISA (`--xla_cpu_max_isa`).
     Some reductions vectorise under AVX-512 only, and programs choose their form by it (the
     executable cache's key holds the CPU's features and XLA_FLAGS)."""
-    if "avx512bw" not in cpu_flags():
+    if "avx512bw" not in cpu_model_and_flags()[1]:
         return False
     for flag in os.environ.get("XLA_FLAGS", "").split():
         if flag.startswith("--xla_cpu_max_isa="):
@@ -692,19 +701,7 @@ def xla_cpu_has_avx512() -> bool:
 def cpu_description() -> str:
     """The CPU as benchmarks and studies name it: model, logical CPUs, the widest vector ISA
     XLA can use, and XLA_FLAGS where set (`--xla_cpu_max_isa=AVX2` holds XLA to AVX2)."""
-    import platform
-
-    model = platform.processor() or "unknown CPU"
-    flags = set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-            if line.startswith("flags"):
-                flags = set(line.split(":", 1)[1].split())
-                break
-    except OSError:
-        pass
+    model, flags = cpu_model_and_flags()
     isa = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "SSE/other"
     xla = os.environ.get("XLA_FLAGS", "")
     return f"{model}; {os.cpu_count()} logical CPUs; ISA {isa}" + (f"; XLA_FLAGS={xla}" if xla else "")

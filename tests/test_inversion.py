@@ -859,31 +859,36 @@ def test_frame_extremes_equal_the_highest_and_lowest_frame(num_frames):
         np.testing.assert_array_equal(np.asarray(low), frames.min(axis=1))
 
 
-def test_data_checks_flag_the_same_pixels_with_the_fold_and_off_the_cpu(monkeypatch):
-    """A long sweep's data checks take each pixel's extremes by the fold on the CPU and by
-    the frames' own reduction elsewhere (a GPU compiled the fold for 46 s): both branches flag
-    the same dead and saturated pixels and give the same I/Q. Traced under `jax.jit`, so the
-    other branch's program never enters the executable cache under this machine's key."""
+@pytest.mark.parametrize("long_sweep", [False, True])
+def test_data_checks_flag_the_same_pixels_in_every_form(monkeypatch, long_sweep):
+    """The data checks take each pixel's extremes in the form fastest where they run: on a CPU
+    whose XLA code has AVX-512 the frames' own reduction, under AVX2 a short sweep's converted
+    values or a long sweep's fold (`frame_extremes`), off the CPU the frames' own reduction (a
+    GPU compiled the fold for 46 s). Every form flags the same dead and saturated pixels and
+    gives the same I/Q. Traced under `jax.jit`, so the other forms' programs never enter the
+    executable cache under this machine's key."""
     from cohflash_jax.reconstruct import programs
     from cohflash_jax.reconstruct.plan import build_plan
 
-    n = programs.SPLIT_AXIS_MIN_FRAMES + 1
+    n = programs.SPLIT_AXIS_MIN_FRAMES + 1 if long_sweep else 35
     plan = build_plan(cf.Instrument.paper(num_steps=n), OPTS["ml"], 4095.0, tracking=False)
     counts = np.random.default_rng(3).integers(100, 4000, (4, n, 16), dtype=np.uint16)
     counts[:, :, 0] = 7  # dead
     counts[2, -1, 1] = 4095  # saturated in the last frame only
     dark = jnp.zeros((4, 16), jnp.float32)
-    run = lambda: jax.jit(lambda f: programs.iq_and_checks(plan.iq, f, dark))(jnp.asarray(counts))
-    on_cpu = run()
-    monkeypatch.setattr(programs.jax, "default_backend", lambda: "gpu")
-    jax.clear_caches()  # the program's trace is kept: trace it again, with the other branch
-    try:
-        off_cpu = run()
-    finally:
-        jax.clear_caches()  # and keep no trace of it for later tests
-    for a, b in zip(jax.tree.leaves(on_cpu), jax.tree.leaves(off_cpu)):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    dead, saturated, _ = off_cpu[2]
+    outputs = []
+    for backend, avx512 in (("cpu", True), ("cpu", False), ("gpu", False)):
+        monkeypatch.setattr(programs.jax, "default_backend", lambda backend=backend: backend)
+        monkeypatch.setattr(programs, "xla_cpu_has_avx512", lambda avx512=avx512: avx512)
+        jax.clear_caches()  # the program's trace is kept: trace it again, in this form
+        try:
+            outputs.append(jax.jit(lambda f: programs.iq_and_checks(plan.iq, f, dark))(jnp.asarray(counts)))
+        finally:
+            jax.clear_caches()  # and keep no trace of it for later tests
+    for other in outputs[1:]:
+        for a, b in zip(jax.tree.leaves(outputs[0]), jax.tree.leaves(other)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    dead, saturated, _ = outputs[0][2]
     assert np.flatnonzero(dead).tolist() == [0] and np.flatnonzero(saturated).tolist() == [1]
 
 

@@ -100,10 +100,11 @@ class PendingTile:
 
 
 class TileDispatcher:
-    """Runs `process_tile` (as `process_stages`) over tiles in sub-tiles of `sub_px` pixels, each dispatched
+    """Runs `process_tile` over tiles in sub-tiles of `sub_px` pixels, each dispatched
     asynchronously (the last padded to the same shape: one compilation per device), in turn
-    on each of `stream_devices`. The plan (as `program_plan` gives it) and a known carrier
-    drift are placed on every device once, when the dispatcher is made, not once per tile."""
+    on each of `stream_devices`. The plan (as `program_plan` gives it, split into its I/Q
+    stage and inversion plan for `process_stages`) and a known carrier drift are placed on
+    every device once, when the dispatcher is made, not once per tile."""
 
     def __init__(self, plan: TilePlan, sub_px: int | None = None, carrier_phase_rad=None):
         self.sub_px = sub_px
