@@ -124,7 +124,7 @@ def test_injected_errors_recovered_within_uncertainty(calibrations):
     assert 0.5 < rms < 1.6, rms
 
 
-def test_calibration_removes_depth_bias(calibrations, cli_calibration, instrument, tmp_path):
+def test_calibration_removes_depth_bias(cli_calibration, instrument, tmp_path):
     """A later static capture of the same instrument: without calibration every depth is off by
     the 1.9 m path offset; with the file from `cohflash calibrate hybrid` the mean error is
     within its standard error (and 30 µm), and the fit uses the calibrated hybrid. And the
