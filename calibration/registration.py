@@ -480,6 +480,28 @@ def refuse_larger_board(board: Board, larger: dict) -> None:
             )
 
 
+def refuse_empty_folder(k: int, files: dict, board: Board, found: int, failed: dict, continues: list) -> None:
+    """Refuse as soon as CCD k's folder is read if fewer than `MIN_VIEWS` of its views show the
+    board (the views of the other folders could not change that): where none showed a board of
+    --board's size, say so, --board being the likely cause. A folder with views whose pattern
+    continues past the grid is left to the wrong-board verdict (`wrong_board`)."""
+    paths = [str(p) for p in files.values()]
+    if found >= MIN_VIEWS or any(p in continues for p in paths):
+        return
+    reasons = [failed.get(p) for p in paths]
+    folder = Path(paths[0]).parent
+    hint = ""
+    if reasons and all(r == "chessboard not found" for r in reasons):
+        hint = (
+            f": no view shows a {board.cols}x{board.rows} chessboard; check --board (the board's inner corners, "
+            "COLSxROWS) and that the board is in view"
+        )
+    raise RegistrationError(
+        f"CCD {k + 1} ({folder}): too few valid views ({found}; at least {MIN_VIEWS} needed){hint}; failed: "
+        + (", ".join(p for p in paths if p in failed) or "none")
+    )
+
+
 def wrong_board(continues: list, found: int) -> bool:
     """Whether the views say --board is not the board: at least three (and a quarter of the
     `found` boards) show the pattern continuing past the grid found."""
@@ -495,9 +517,12 @@ def detect_all(view_files, board: Board, progress: bool):
     continues = []
     larger = {}  # a larger board's size → the views that show it
     confirmed = 0  # views whose grid of --board's size is the whole board
+    fruitless = 0  # searches for a larger board that found none
     views = [(k, name, path) for k, files in enumerate(view_files.files) for name, path in files.items()]
     with tqdm(total=len(views), unit="view", desc="detecting corners", disable=not progress) as bar:
         for seen, (k, name, path) in enumerate(views, start=1):
+            if k > 0 and name == next(iter(view_files.files[k])):  # the folder before is read
+                refuse_empty_folder(k - 1, view_files.files[k - 1], board, len(raw[k - 1]), failed, continues)
             bar.update()
             try:
                 img = read_image(path)
@@ -519,8 +544,11 @@ def detect_all(view_files, board: Board, progress: bool):
             side = None if corners is None else board_continues(img8, corners, board)
             # no board of this size, or part of a larger one: looked for a larger one until the
             # board is confirmed in as many views as would refuse it (a failed view costs a search)
-            if (corners is None or side is not None) and confirmed < LARGER_BOARD_VIEWS:
+            # (or until as many searches found none twice over: a --board larger than the board)
+            searching = confirmed < LARGER_BOARD_VIEWS and fruitless < 2 * LARGER_BOARD_VIEWS
+            if (corners is None or side is not None) and searching:
                 size_seen = larger_board_size(img8, board)
+                fruitless += size_seen is None
                 if size_seen is not None:
                     larger.setdefault(size_seen, []).append(str(path))
                     refuse_larger_board(board, larger)

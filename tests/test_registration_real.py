@@ -153,6 +153,23 @@ def test_a_wrong_board_is_refused_by_name(folders, board, tmp_path, capsys):
     assert f"--board {board} does not match the board" in err and "pass --board 9x6" in err, err
 
 
+def test_a_board_larger_than_the_views_show_is_refused_after_the_first_folder(folders, tmp_path, capsys):
+    """--board 10x7 on OpenCV's 9×6 board: no view of CCD 1 shows it, so the registration is
+    refused once that folder is read (it cannot succeed), naming --board as the likely cause."""
+    few = {}  # three views a CCD: each failed search is slow
+    for k in ("L", "R", "L_png", "R_png"):
+        few[k] = tmp_path / k
+        few[k].mkdir()
+        for p in sorted(folders[k].iterdir())[:3]:
+            shutil.copy(p, few[k] / p.name)
+    out = tmp_path / "registration.json"
+    args = ["calibrate", "registration", "--images", *(str(few[k]) for k in ("L", "R", "L_png", "R_png"))]
+    assert main([*args, "--board", "10x7", "--square-mm", "25", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert not out.exists() and "CCD 1" in err and "no view shows a 10x7 chessboard; check --board" in err, err
+    assert str(few["R"]) not in err  # the other folders were not searched
+
+
 def test_the_loader_refuses_a_registration_that_fails_the_gates(plain, tmp_path):
     path = write_registration(tmp_path / "reg.json", plain)
     assert load_registration(path).cameras[3].mirrored is False
