@@ -245,7 +245,9 @@ def _on_host(ev: Evaluation, n: int) -> Evaluation:
 def solve_starts(n, starts, *, n_cap: int, problem: DesignProblem):
     """BFGS from each row of `starts` for N = n frames → (z, objective) per start: one compiled
     program per frame cap, schedule and number of starts, kept on disk (`problem` with its
-    numbers as values: `DesignProblem.as_values`)."""
+    numbers as values: `DesignProblem.as_values`). The starts run one after another
+    (`lax.map`), not in lockstep (`vmap`): a batched BFGS loop steps every start until the
+    slowest has converged, and its batching rule traces the whole solve a second time."""
 
     def solve(z_start):
         solver = optx.BFGS(rtol=1e-7, atol=1e-9)
@@ -253,7 +255,7 @@ def solve_starts(n, starts, *, n_cap: int, problem: DesignProblem):
         sol = optx.minimise(_objective, solver, z_start, args=args, max_steps=MAX_BFGS_STEPS, throw=False)
         return sol.value, _objective(sol.value, args)
 
-    return jax.vmap(solve)(starts)
+    return jax.lax.map(solve, starts)
 
 
 # warm starts a search takes beside `_STARTS` (fewer are padded: one program for any number)
