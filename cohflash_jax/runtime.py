@@ -31,7 +31,9 @@ _QUICK_COMPILE: contextvars.ContextVar[bool] = contextvars.ContextVar("quick_com
 QUICK_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
 # On the CPU a quick program is also emitted by XLA's older loop emitters: the fusion emitters'
 # own lowering (MLIR, kernel by kernel) was most of a quick compile, even at the lowest level.
-# Not for optimised programs, whose code the fusion emitters make faster. The loop emitters
+# Not for optimised programs, whose code the fusion emitters make faster (the 3000-frame
+# inversion: 4.6 % slower), unless a program asks for them (`async_filter_jit`'s
+# `loop_emitters`: the design's searches, as fast either way). The loop emitters
 # repeat an operand for each read of it, so a long chain of steps each reading its input twice
 # compiles in time doubling with each step: fit for the package's own programs, which the
 # suite compiles, not for arbitrary ones (docs/performance.md)
@@ -45,6 +47,14 @@ QUICK_COMPILE_MAX_PIXELS = 1024
 def quick_compile_options(platform: str) -> dict:
     """XLA's options for a quick program (`quick_compile`) on `platform` ("cpu", "gpu", …)."""
     return QUICK_COMPILE_OPTIONS | (QUICK_COMPILE_CPU_OPTIONS if platform == "cpu" else {})
+
+
+def compile_options(platform: str, quick: bool, loop_emitters: bool) -> dict:
+    """XLA's options for a program on `platform`: a quick one's (`quick_compile_options`), else
+    on the CPU the loop emitters alone where the program asks for them (`async_filter_jit`)."""
+    if quick:
+        return quick_compile_options(platform)
+    return QUICK_COMPILE_CPU_OPTIONS if loop_emitters and platform == "cpu" else {}
 
 
 # XLA options a compile refused as unknown in this process (`compile_lowered`)
@@ -94,7 +104,7 @@ def compiling_quick() -> bool:
 MATMUL_PRECISION = "highest"
 
 
-def async_filter_jit(fun):
+def async_filter_jit(fun=None, *, loop_emitters: bool = False):
     """`jax.jit` of `fun` with its non-array arguments static, as `eqx.filter_jit` does, but
     returning as soon as the work is queued. `eqx.filter_jit` (equinox 0.13) waits for every
     call to finish (it blocks on a marker output, for its runtime-error reporting), so a
@@ -105,12 +115,19 @@ def async_filter_jit(fun):
     Each program (one per static half and argument shapes, types and devices) is compiled
     once per process, and where the executable cache is on (`enable_compilation_cache`) it is
     loaded from disk in later processes without tracing or lowering `fun` at all
-    (`ExecutableCache`)."""
+    (`ExecutableCache`).
+
+    `loop_emitters`: on the CPU, emitted by XLA's loop emitters even where not quick
+    (`QUICK_COMPILE_CPU_OPTIONS`), for programs whose compile is long and whose speed the
+    fusion emitters do not change (the design's searches: their compile is most of a first
+    run, docs/performance.md): `@async_filter_jit(loop_emitters=True)`."""
     import functools
 
     import equinox as eqx
     import jax
 
+    if fun is None:  # @async_filter_jit(loop_emitters=True)
+        return functools.partial(async_filter_jit, loop_emitters=loop_emitters)
     programs = {}
 
     def flat_fun(static_leaves, mask, treedef):
@@ -150,7 +167,7 @@ def async_filter_jit(fun):
         if program is None:
             flat = flat_fun(static_leaves, mask, treedef)
             parts = ((static_leaves, mask), treedef, signature)
-            program = programs[key] = EXECUTABLES.program(fun, flat, parts, arrays, quick)
+            program = programs[key] = EXECUTABLES.program(fun, flat, parts, arrays, quick, loop_emitters)
         return program(*arrays)
 
     return call
@@ -248,7 +265,7 @@ class ExecutableCache:
             )
         return self._environment
 
-    def key(self, fun, static, treedef, signature, quick: bool = False) -> str | None:
+    def key(self, fun, static, treedef, signature, quick: bool = False, loop_emitters: bool = False) -> str | None:
         """The entry's file name, or None where the static leaves (and the array mask:
         `async_filter_jit`) or the arguments' structure, whose nodes hold the modules' static
         fields, have no stable text."""
@@ -259,33 +276,34 @@ class ExecutableCache:
             return None
         shapes = repr([(shape, dtype, weak, None if sh is None else repr(sh)) for shape, dtype, weak, sh in signature])
         parts = (self.environment(), fun.__module__, fun.__qualname__, text, shapes)
-        whole = "|".join(parts + (("quick",) if quick else ()))
+        whole = "|".join(parts + (("quick",) if quick else ()) + (("loop-emitters",) if loop_emitters else ()))
         return f"{fun.__name__.strip('_')}-{hashlib.sha256(whole.encode()).hexdigest()[:40]}.exe"
 
-    def program(self, fun, flat, parts, leaves, quick: bool = False):
+    def program(self, fun, flat, parts, leaves, quick: bool = False, loop_emitters: bool = False):
         """The compiled `flat` for these leaves: from disk, else compiled (and written);
-        `quick`: compiled for a short compile (`quick_compile`)."""
+        `quick`: compiled for a short compile (`quick_compile`); `loop_emitters`: see
+        `async_filter_jit`."""
         import jax
 
         jitted = jax.jit(flat)
-        name = self.key(fun, *parts, quick) if self.folder is not None else None
+        name = self.key(fun, *parts, quick, loop_emitters) if self.folder is not None else None
         if name is None:
-            return self._compile(jitted, leaves, None, quick) if quick else jitted
+            return self._compile(jitted, leaves, None, quick, loop_emitters) if quick or loop_emitters else jitted
         path = self.folder / name
         device, devices = first_device(leaves), jax.devices()
         if device is None or device in devices:  # what the next run's `prefetch` can load
             self.used[name] = 0 if device is None else devices.index(device)
-        program = self._load(path, jitted, leaves, quick)
+        program = self._load(path, jitted, leaves, quick, loop_emitters)
         if program is None:
             # processes sharing the folder (test workers, Dask workers, two runs started
             # together) compile a program once: the others wait for its entry and load it
             with entry_lock(path):
-                program = self._load(path, jitted, leaves, quick)
+                program = self._load(path, jitted, leaves, quick, loop_emitters)
                 if program is None:
-                    program = self._compile(jitted, leaves, path, quick)
+                    program = self._compile(jitted, leaves, path, quick, loop_emitters)
         return program
 
-    def _load(self, path: Path, jitted, leaves, quick: bool):
+    def _load(self, path: Path, jitted, leaves, quick: bool, loop_emitters: bool = False):
         """The entry at `path` loaded for these leaves, or None where there is none (a damaged
         or foreign entry is removed)."""
         if not path.exists():
@@ -303,7 +321,7 @@ class ExecutableCache:
             return None
         self.loaded += 1
         self.load_seconds += time.perf_counter() - started
-        return self._checked(program, path, lambda: self._compile(jitted, leaves, path, quick))
+        return self._checked(program, path, lambda: self._compile(jitted, leaves, path, quick, loop_emitters))
 
     @staticmethod
     def _deserialize(path: Path, devices=None):
@@ -406,9 +424,10 @@ class ExecutableCache:
 
         return run
 
-    def _compile(self, jitted, leaves, path: Path | None, quick: bool = False):
+    def _compile(self, jitted, leaves, path: Path | None, quick: bool = False, loop_emitters: bool = False):
         """Compile `jitted` for these leaves and write the executable to `path` (None: kept in
-        this process only); `quick`: for a short compile (`quick_compile_options`)."""
+        this process only); `quick`: for a short compile (`quick_compile_options`);
+        `loop_emitters`: see `async_filter_jit`."""
         import jax
 
         started = time.perf_counter()
@@ -419,9 +438,9 @@ class ExecutableCache:
             # (how many buffers a buffer-assignment dump lists) with a value of its own gives
             # it a key of its own in that cache
             options = {"xla_debug_buffer_assignment_show_max": 1_000_000 + time.monotonic_ns() % 1_000_000_000}
-            if quick:
-                device = first_device(leaves)
-                options |= quick_compile_options(jax.default_backend() if device is None else device.platform)
+            device = first_device(leaves)
+            platform = jax.default_backend() if device is None else device.platform
+            options |= compile_options(platform, quick, loop_emitters)
             compiled = compile_lowered(jitted.lower(*leaves), options)
         except Exception:  # e.g. an argument jit accepts but lowering with it does not
             return jitted

@@ -83,10 +83,21 @@ def test_quick_compiled_programs_are_kept_apart_and_agree_with_optimised_ones():
 
     import cohflash_jax as cf
     from cohflash_jax.reconstruct import ReconstructOptions, TileDispatcher, build_plan
-    from cohflash_jax.runtime import EXECUTABLES, quick_compile
+    from cohflash_jax.runtime import (
+        EXECUTABLES,
+        QUICK_COMPILE_CPU_OPTIONS,
+        compile_options,
+        quick_compile,
+        quick_compile_options,
+    )
 
     fun = test_quick_compiled_programs_are_kept_apart_and_agree_with_optimised_ones
-    assert EXECUTABLES.key(fun, (1,), None, (), False) != EXECUTABLES.key(fun, (1,), None, (), True)
+    keys = {EXECUTABLES.key(fun, (1,), None, (), quick, loops) for quick in (False, True) for loops in (False, True)}
+    assert len(keys) == 4  # quick, and loop-emitted (`async_filter_jit(loop_emitters=True)`), each apart
+    # a program that asks for the loop emitters gets them on the CPU alone, and quick ones stay quick
+    assert compile_options("cpu", False, True) == QUICK_COMPILE_CPU_OPTIONS
+    assert compile_options("gpu", False, True) == {} == compile_options("cpu", False, False)
+    assert compile_options("cpu", True, True) == compile_options("cpu", True, False) == quick_compile_options("cpu")
     inst = cf.Instrument.paper(256)
     frames = cf.simulate(cf.planar(12.0, 0.9, effects=("shot_noise", "read_noise")), inst, 4, 8, jax.random.key(5))
     plan = build_plan(inst, ReconstructOptions(progress=False))

@@ -86,7 +86,7 @@ def evaluate(z, n, n_cap: int, problem: DesignProblem) -> Evaluation:
     return Evaluation(locked, coarse, jnp.sum(f * mask) / n, jnp.max(steps), snr, v, f)
 
 
-@async_filter_jit
+@async_filter_jit(loop_emitters=True)
 def evaluate_program(z, n, *, n_cap: int, problem: DesignProblem) -> tuple:
     """`evaluate` compiled (one program per frame cap and schedule, kept on disk; `problem`
     with its numbers as values): the `Evaluation`'s fields in order."""
@@ -241,7 +241,7 @@ def _on_host(ev: Evaluation, n: int) -> Evaluation:
     )
 
 
-@async_filter_jit
+@async_filter_jit(loop_emitters=True)
 def solve_starts(n, starts, *, n_cap: int, problem: DesignProblem):
     """BFGS from each row of `starts` for N = n frames → (z, objective) per start: one compiled
     program per frame cap, schedule and number of starts, kept on disk (`problem` with its
