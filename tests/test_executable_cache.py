@@ -85,6 +85,7 @@ def test_quick_compiled_programs_are_kept_apart_and_agree_with_optimised_ones():
     from cohflash_jax.reconstruct import ReconstructOptions, TileDispatcher, build_plan
     from cohflash_jax.runtime import (
         EXECUTABLES,
+        GPU_COMPILE_OPTIONS,
         QUICK_COMPILE_CPU_OPTIONS,
         compile_options,
         quick_compile,
@@ -96,8 +97,11 @@ def test_quick_compiled_programs_are_kept_apart_and_agree_with_optimised_ones():
     assert len(keys) == 4  # quick, and loop-emitted (`async_filter_jit(loop_emitters=True)`), each apart
     # a program that asks for the loop emitters gets them on the CPU alone, and quick ones stay quick
     assert compile_options("cpu", False, True) == QUICK_COMPILE_CPU_OPTIONS
-    assert compile_options("gpu", False, True) == {} == compile_options("cpu", False, False)
+    assert compile_options("cpu", False, False) == {}
     assert compile_options("cpu", True, True) == compile_options("cpu", True, False) == quick_compile_options("cpu")
+    # on a GPU, every program without XLA's autotuning, and no CPU option
+    assert compile_options("gpu", False, True) == GPU_COMPILE_OPTIONS
+    assert compile_options("gpu", True, False) == quick_compile_options("gpu") | GPU_COMPILE_OPTIONS
     inst = cf.Instrument.paper(256)
     frames = cf.simulate(cf.planar(12.0, 0.9, effects=("shot_noise", "read_noise")), inst, 4, 8, jax.random.key(5))
     plan = build_plan(inst, ReconstructOptions(progress=False))
