@@ -80,7 +80,7 @@ from cohflash_jax.capture import Capture
 from cohflash_jax.cli import run_reconstruct
 from cohflash_jax.reconstruct import ReconstructOptions
 from cohflash_jax.reconstruct.api import tile_rows
-from cohflash_jax.reconstruct.engine import BlockReader, sub_tile_pixels
+from cohflash_jax.reconstruct.engine import BlockReader, PieceReader, sub_tile_pixels
 from cohflash_jax.reconstruct.plan import build_plan
 from cohflash_jax.reconstruct import programs
 from cohflash_jax.results import write_depth
@@ -97,16 +97,19 @@ write = time.perf_counter() - t
 with Capture(capture) as cap:
     n, h, w = cap.shape
     rows = tile_rows(cap, options)
-    reader = BlockReader(cap, rows)
+    # as the reconstruction reads: straight into its sub-tiles where it can (`PieceReader`)
+    pieces = PieceReader.of(cap, rows)
+    reader = pieces or BlockReader(cap, rows)
     t = time.perf_counter()
     for r0 in range(0, h, rows):
         block = reader.read(r0)
     read = time.perf_counter() - t
     instrument = cap.instrument()
-    block = np.ascontiguousarray(reader.read(0))
+    block = reader.read(0)
+    sub = pieces.sub if pieces else sub_tile_pixels(rows * w, n)
+    first = block.pieces[0] if pieces else block[..., :sub]
 plan = build_plan(instrument, options, None, tracking=False)
-sub = sub_tile_pixels(rows * w, n)
-frames = jax.device_put(np.ascontiguousarray(block[..., :sub]))
+frames = jax.device_put(np.array(first))
 dark = jax.device_put(np.zeros((4, sub), np.float32))
 coarse = async_filter_jit(lambda plan, r: plan.coarse(r))
 def timed(fn, *args, repeats=5):

@@ -435,6 +435,35 @@ class Capture:
         else:
             self.frames.read_direct(out, np.s_[:, :, rows, :], np.s_[:, :, :count, :])
 
+    def scatter_tables(self, pieces: list[np.ndarray], rows: int, rows_per_piece: int) -> list | None:
+        """Where tiles of `rows` rows can be read straight into `pieces` of `rows_per_piece`
+        rows each (4, N, rows_per_piece·W) (`read_tile_into_pieces`), the scatter tables for
+        it (`DirectChunkReader.scatter_table`); else None."""
+        direct = self.direct_reader if self.store == "hdf5" else None
+        if direct is None or not direct.covers(slice(0, rows)) or not direct.scatters(rows, rows_per_piece):
+            return None
+        return direct.scatter_table(pieces, rows, rows_per_piece)
+
+    def read_tile_into_pieces(self, pieces: list[np.ndarray], tables: list, rows: slice) -> None:
+        """Frames of rows `rows` read into `pieces` of consecutive rows, each (4, N, k·W),
+        C-contiguous, of the file's dtype, with the `scatter_tables` made for them: straight
+        from the file where the rows are whole chunk bands, else through HDF5 and a copy."""
+        r0, r1, _ = rows.indices(self.shape[1])
+        direct = self.direct_reader
+        if direct is not None and direct.covers(rows):
+            try:
+                direct.read_rows_into_pieces(tables, rows)
+            except OSError as exc:  # e.g. the file truncated since it was opened
+                self._fail(f"frames of rows {r0}:{r1} could not be read ({exc})")
+            return
+        n, _, w = self.shape
+        block = np.empty((4, n, r1 - r0, w), self.frames.dtype)
+        self.read_tile_into(block, rows)
+        flat, k = block.reshape(4, n, -1), pieces[0].shape[-1]
+        for s, piece in enumerate(pieces):
+            part = flat[..., s * k : (s + 1) * k]
+            piece[..., : part.shape[-1]] = part
+
     @functools.cached_property
     def direct_reader(self) -> DirectChunkReader | None:
         """The frames' `DirectChunkReader` (made on first use), or None where their chunks

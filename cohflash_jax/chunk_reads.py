@@ -11,10 +11,33 @@ tile not on chunk boundaries) is left to HDF5.
 
 from __future__ import annotations
 
+import ctypes
 import os
 
 import h5py
 import numpy as np
+
+# struct iovec {void *iov_base; size_t iov_len;}, as `preadv` takes an array of them
+IOVEC = np.dtype([("base", np.uintp), ("length", np.uintp)])
+
+
+def _libc_preadv():
+    """libc's `preadv` through ctypes, or None where there is none: `os.preadv` takes a list of
+    buffers, and a chunk scattered over a tile's pieces is one buffer per frame and piece
+    (128 for a 32-row chunk of 4 frames in pieces of one row), so the scatter tables are built
+    once per buffer as arrays of `IOVEC` and the calls take pointers into them."""
+    try:
+        call = ctypes.CDLL(None, use_errno=True).preadv
+    except (OSError, AttributeError):
+        return None
+    call.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_int, ctypes.c_int64]
+    call.restype = ctypes.c_ssize_t
+    return call
+
+
+PREADV = _libc_preadv()
+# a scatter of more buffers than this is left to the gathered read (Linux's IOV_MAX)
+MAX_IOVECS = 1024
 
 
 class ChunkIndexError(ValueError):
@@ -39,7 +62,7 @@ class DirectChunkReader:
             raise ChunkIndexError(f"chunks {chunks} do not span whole rows of one CCD")
         if not dataset.dtype.isnative:
             raise ChunkIndexError(f"frames are stored {dataset.dtype.str}, not in this machine's byte order")
-        self.shape, self.chunks = shape, chunks
+        self.shape, self.chunks, self.itemsize = shape, chunks, dataset.dtype.itemsize
         chunk_bytes = int(np.prod(chunks)) * dataset.dtype.itemsize
         offsets = {}
 
@@ -81,6 +104,69 @@ class DirectChunkReader:
                     got = os.preadv(self.fd, views, self.offsets[(c, n0, band, 0)])
                     if got != want:
                         raise OSError(f"chunk {(c, n0, band, 0)}: {got} of {want} bytes read (a truncated file?)")
+
+    def scatters(self, rows: int, rows_per_piece: int) -> bool:
+        """Whether `read_rows_into_pieces` reads a tile of `rows` rows (whole chunk bands) in
+        pieces of `rows_per_piece` rows: libc's `preadv` is at hand and a chunk's scatter fits
+        in one call."""
+        _, fc, rc, _ = self.chunks
+        pieces_per_band = -(-rc // rows_per_piece) + 1
+        return PREADV is not None and rows % rows_per_piece == 0 and fc * pieces_per_band <= MAX_IOVECS
+
+    def scatter_table(self, pieces: list[np.ndarray], rows: int, rows_per_piece: int) -> list[np.ndarray]:
+        """For each chunk band of a tile of `rows` rows, the `IOVEC`s that scatter each of its
+        chunks into `pieces` (4, N, rows_per_piece·W) of consecutive rows: (4, frame chunks,
+        frames per chunk × runs), a run being a chunk's frame's rows within one piece."""
+        _, n, _, w = self.shape
+        _, fc, rc, _ = self.chunks
+        item = pieces[0].itemsize
+        addresses = np.array([p.ctypes.data for p in pieces], np.uintp)
+        frame_bytes = rows_per_piece * w * item
+        groups = -(-n // fc)
+        tables = []
+        for band in range(0, rows, rc):
+            rel = np.arange(band, band + rc)
+            piece, row = rel // rows_per_piece, rel % rows_per_piece
+            starts = np.flatnonzero(np.r_[True, piece[1:] != piece[:-1]])  # runs of rows in one piece
+            counts = np.diff(np.r_[starts, rc])
+            base = addresses[piece[starts]] + (row[starts] * w * item).astype(np.uintp)  # (runs,)
+            frames = np.arange(groups * fc).reshape(groups, fc)
+            table = np.empty((4, groups, fc, starts.size), IOVEC)
+            table["base"] = (
+                base[None, None, None, :]
+                + (np.arange(4) * n * frame_bytes).astype(np.uintp)[:, None, None, None]
+                + (np.minimum(frames, n - 1) * frame_bytes).astype(np.uintp)[None, :, :, None]
+            )
+            table["length"] = (counts * w * item).astype(np.uintp)[None, None, None, :]
+            tables.append(table.reshape(4, groups, fc * starts.size))
+        return tables
+
+    def read_rows_into_pieces(self, tables: list[np.ndarray], rows: slice) -> None:
+        """Frames of rows `rows` (`covers` them; as many rows as the tables were made for) read
+        straight into the pieces of `scatter_table`'s `tables`: each chunk with one `preadv`
+        that scatters its frames' rows to the pieces they belong to, so a piece is ready to be
+        computed on without a copy."""
+        _, n, _, w = self.shape
+        r0, r1, _ = rows.indices(self.shape[2])
+        _, fc, rc, _ = self.chunks
+        bands = list(enumerate(range(r0, r1, rc)))
+        start = [t.ctypes.data for t in tables]  # each chunk's IOVECs: (c, g) rows of its band's table
+        runs = [t.shape[-1] // fc for t in tables]
+        groups = tables[0].shape[1]
+        for c in range(4):
+            for g, n0 in enumerate(range(0, n, fc)):
+                k = min(fc, n - n0)  # a last chunk of frames holds fewer than fc frames of data
+                want = k * rc * w * self.itemsize
+                for b, band in bands:
+                    row = (c * groups + g) * fc * runs[b]
+                    address = start[b] + row * IOVEC.itemsize
+                    got = PREADV(self.fd, address, k * runs[b], self.offsets[(c, n0, band, 0)])
+                    if got != want:
+                        error = ctypes.get_errno()
+                        raise OSError(
+                            f"chunk {(c, n0, band, 0)}: {got} of {want} bytes read"
+                            + (f" ({os.strerror(error)})" if got < 0 else " (a truncated file?)")
+                        )
 
     def close(self):
         if self.fd is not None:

@@ -213,6 +213,52 @@ def bind_lapack_kernels():
         _LAPACK_BOUND = True
 
 
+class CpuRebindError(RuntimeError):
+    """An executable compiled for one CPU device could not be loaded for another."""
+
+
+# An entry compiled for one CPU device is loaded for the process's other CPU devices
+# (`load_on_cpu_device`), unless this is off or a load found that this JAX cannot
+CPU_ENTRIES_SHARED = True
+
+
+def load_on_cpu_device(payload: bytes, in_tree, out_tree, device):
+    """An executable serialised for one CPU device (`jax.experimental.serialize_executable`)
+    loaded for `device`, another CPU device of this process: the same machine code, its device
+    assignment replaced. `deserialize_and_load` keeps the assignment it was compiled with and
+    refuses arguments placed elsewhere; without this, two CPU streams compile every program
+    twice (docs/performance.md). The pickle is read as `deserialize_and_load` reads it (its
+    persistent ids: the executable's bytes, devices by id, the client), each device read as
+    `device`; where that fails (another JAX), `CpuRebindError`."""
+    import io
+    import pickle
+
+    import jax
+    from jaxlib import xla_client
+
+    options = xla_client.CompileOptions()
+    options.device_assignment = xla_client.DeviceAssignment.create(np.array([[device.id]]))
+    devices = xla_client.DeviceList((device,))
+
+    class Unpickler(pickle.Unpickler):
+        def persistent_load(self, pid):
+            if pid[0] == "exec":
+                return device.client.deserialize_executable(pid[1], devices, options)
+            if pid[0] == "device":
+                return device
+            if pid[0] == "client":
+                return device.client
+            raise pickle.UnpicklingError(f"unknown persistent id {pid[0]!r}")
+
+    try:
+        unloaded, args_info_flat, no_kwargs = Unpickler(io.BytesIO(payload)).load()
+        return jax.stages.Compiled(
+            unloaded.load(), [], in_tree.unflatten(args_info_flat), out_tree, no_kwargs=no_kwargs
+        )
+    except Exception as exc:
+        raise CpuRebindError(f"an executable could not be moved to {device}: {exc}") from exc
+
+
 class ExecutableCache:
     """Compiled programs kept on disk whole, keyed by everything that determines them.
 
@@ -234,10 +280,12 @@ class ExecutableCache:
         self._environment: str | None = None
         self.loaded = self.compiled = 0  # programs this process loaded and compiled
         self.load_seconds = self.compile_seconds = 0.0
-        # the entries this process loaded or compiled on the default backend's devices, in
-        # order → the index of the device (in `jax.devices()`) each ran on
-        self.used: dict[str, int] = {}
-        self.prefetched: dict = {}  # entry path → (the future of its load, its device) (`prefetch`)
+        # the entries this process loaded or compiled on the default backend's devices, each
+        # with the index of the device (in `jax.devices()`) it ran on, in order (an entry may run
+        # on several CPU devices: `placement`)
+        self.used: dict[tuple[str, int], None] = {}
+        self.prefetched: dict = {}  # (entry path, device) → the future of its load (`prefetch`)
+        self.cpu_rebind_failed = False  # an entry could not be moved between CPU devices (`placement`)
         self.prefetched_used = 0
 
     def environment(self) -> str:
@@ -283,10 +331,29 @@ class ExecutableCache:
         text = f"{static!r}|{treedef}"
         if " at 0x" in text:
             return None
-        shapes = repr([(shape, dtype, weak, None if sh is None else repr(sh)) for shape, dtype, weak, sh in signature])
+        shapes = repr([(shape, dtype, weak, self.placement(sh)) for shape, dtype, weak, sh in signature])
         parts = (self.environment(), fun.__module__, fun.__qualname__, text, shapes)
         whole = "|".join(parts + (("quick",) if quick else ()) + (("loop-emitters",) if loop_emitters else ()))
         return f"{fun.__name__.strip('_')}-{hashlib.sha256(whole.encode()).hexdigest()[:40]}.exe"
+
+    def placement(self, sharding) -> str | None:
+        """An argument's placement as its entry's name reads it: a single CPU device stands
+        for any of this process's CPU devices (an entry compiled for one is loaded for another,
+        `load_on_cpu_device`: two CPU streams compile each program once), any other
+        placement for itself."""
+        import jax
+
+        if sharding is None:
+            return None
+        if (
+            isinstance(sharding, jax.sharding.SingleDeviceSharding)
+            and CPU_ENTRIES_SHARED
+            and not self.cpu_rebind_failed
+        ):
+            (device,) = sharding.device_set
+            if device.platform == "cpu":
+                return "SingleDeviceSharding(cpu)"
+        return repr(sharding)
 
     def program(self, fun, flat, parts, leaves, quick: bool = False, loop_emitters: bool = False):
         """The compiled `flat` for these leaves: from disk, else compiled (and written);
@@ -301,7 +368,7 @@ class ExecutableCache:
         path = self.folder / name
         device, devices = first_device(leaves), jax.devices()
         if device is None or device in devices:  # what the next run's `prefetch` can load
-            self.used[name] = 0 if device is None else devices.index(device)
+            self.used[name, 0 if device is None else devices.index(device)] = None
         program = self._load(path, jitted, leaves, quick, loop_emitters)
         if program is None:
             # processes sharing the folder (test workers, Dask workers, two runs started
@@ -325,6 +392,9 @@ class ExecutableCache:
             if program is None:
                 program = self._deserialize(path, devices)
             os.utime(path)  # recently used: the bound removes the oldest first
+        except CpuRebindError:  # another CPU device's entry that cannot be moved: kept, and
+            self.cpu_rebind_failed = True  # this program compiled here alone (later ones per device)
+            return self._compile(jitted, leaves, None, quick, loop_emitters)
         except Exception:  # a damaged or foreign entry: compiled afresh and replaced
             path.unlink(missing_ok=True)
             return None
@@ -343,18 +413,20 @@ class ExecutableCache:
         payload, in_tree, out_tree = pickle.loads(path.read_bytes())
         if b"lapack_" in payload:  # it calls LAPACK kernels: bound before it runs
             bind_lapack_kernels()
-        return deserialize_and_load(payload, in_tree, out_tree, execution_devices=devices)
+        try:
+            return deserialize_and_load(payload, in_tree, out_tree, execution_devices=devices)
+        except KeyError:  # compiled for another of this process's CPU devices (`placement`)
+            if devices is None or len(devices) != 1 or devices[0].platform != "cpu":
+                raise
+            return load_on_cpu_device(payload, in_tree, out_tree, devices[0])
 
     def _prefetched_program(self, path: Path, devices):
         """The executable `prefetch` loaded for `path` (waiting for it), where it was loaded
         onto the device the arguments are on (None: the default device); else None."""
         import jax
 
-        entry = self.prefetched.pop(path, None)
-        if entry is None:
-            return None
-        future, device = entry
-        if device != (jax.devices()[0] if devices is None else devices[0]):
+        future = self.prefetched.pop((path, jax.devices()[0] if devices is None else devices[0]), None)
+        if future is None:
             return None
         try:
             program = future.result()
@@ -373,19 +445,19 @@ class ExecutableCache:
 
         import jax
 
-        devices, wanted = jax.devices(), {}
+        devices, wanted = jax.devices(), []
         for note in names:
             name, _, index = note.partition("@")
             k = int(index) if index.isdigit() else 0
             if self.folder is not None and name.endswith(".exe") and "/" not in name and k < len(devices):
-                wanted[self.folder / name] = devices[k]
-        wanted = {p: d for p, d in wanted.items() if p.exists() and p not in self.prefetched}
+                wanted.append((self.folder / name, devices[k]))
+        wanted = [(p, d) for p, d in dict.fromkeys(wanted) if p.exists() and (p, d) not in self.prefetched]
         if not wanted:
             return False
         pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="executable-prefetch")
         # each onto its device by name: left to the entry, an executable loads for every local
         # device where there are several (two CPU streams) and refuses one device's arguments
-        self.prefetched.update({p: (pool.submit(self._deserialize, p, [d]), d) for p, d in wanted.items()})
+        self.prefetched.update({(p, d): pool.submit(self._deserialize, p, [d]) for p, d in wanted})
         pool.shutdown(wait=False)  # its thread ends with the last load
         return True
 
@@ -408,7 +480,7 @@ class ExecutableCache:
         if self.folder is None or input_bytes is None or not self.used:
             return
         path = self.folder / f"recent-{command}-{input_bytes}.txt"
-        notes = [name if k == 0 else f"{name}@{k}" for name, k in self.used.items()]
+        notes = [name if k == 0 else f"{name}@{k}" for name, k in self.used]
         if replace_file(path, ("\n".join(notes) + "\n").encode()):
             bound_folder(self.folder, "recent-*.txt", self.MAX_NOTE_BYTES)
 
@@ -559,13 +631,14 @@ EXECUTABLES = ExecutableCache()
 
 
 # CPU devices the CLI asks for, unless a command asks otherwise (`COMMAND_CPU_STREAMS`): one.
-# Two let two programs run at once, which pays where one program leaves a core idle, but every
-# program is compiled once per device (measured in docs/performance.md)
+# Two let two programs run at once, which pays where one program leaves a core idle; a program
+# is compiled once and loaded for the second device (`load_on_cpu_device`); measured in
+# docs/performance.md
 CLI_CPU_STREAMS = 1
-# the simulator's frame chunks gain from two (one chunk's program leaves a core idle); so does a
+# the simulator's frame chunks gain from two (one chunk's program leaves a core idle); so do a
 # stream of short captures (the 10 Hz maps: small programs, a core idle while the other
-# dispatches and copies), which compiles its programs once for many maps
-COMMAND_CPU_STREAMS = {"simulate": 2, "stream": 2}
+# dispatches) and a capture's sub-tiles read straight into place (`engine.PieceReader`)
+COMMAND_CPU_STREAMS = {"simulate": 2, "stream": 2, "reconstruct": 2}
 
 
 def cli_cpu_streams(command: str | None) -> int:

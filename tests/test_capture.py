@@ -144,6 +144,42 @@ def test_block_reader_reads_over_a_tile_only_once_it_is_released(tmp_path):
         assert np.shares_memory(reader.read(0), second) and len(reader.buffers) == 2
 
 
+@pytest.mark.parametrize(
+    "chunks,tile_rows,rows_per_piece",
+    [
+        ((1, 4, 8, 7), 8, 1),  # a piece a row: 8 runs per chunk frame; the last frames' chunk part-filled
+        ((1, 4, 8, 7), 8, 4),
+        ((1, 4, 8, 7), 16, 4),  # two chunk bands a tile
+        ((1, 3, 5, 7), 10, 2),  # a piece across two chunk bands; the last tile (rows 20:22) through HDF5
+    ],
+)
+def test_tiles_read_straight_into_their_sub_tiles_equal_hdf5_reads(tmp_path, chunks, tile_rows, rows_per_piece):
+    """A tile read as its sub-tiles (`PieceReader`: each chunk scattered by one `preadv` to the
+    pieces its rows belong to) holds HDF5's frames, piece by piece, in aligned C-contiguous
+    pieces (a CPU device array aliases them); the short last tile is padded with zeros; a tile
+    still in use keeps its buffer, the next tile going into the other."""
+    from cohflash_jax.reconstruct.engine import BUFFER_ALIGNMENT_BYTES, PieceReader
+
+    frames = np.random.default_rng(8).integers(0, 2**16, (4, 10, 22, 7), dtype=np.uint16)
+    with Capture(_chunked(tmp_path / "c.h5", frames, chunks=chunks)) as cap:
+        reader = PieceReader(cap, tile_rows, rows_per_piece)
+        assert reader.new_buffer() is not None
+        sub = rows_per_piece * 7
+        for r0 in range(0, 22, tile_rows):
+            r1 = min(22, r0 + tile_rows)
+            expected = np.zeros((4, 10, tile_rows, 7), np.uint16)
+            expected[:, :, : r1 - r0] = frames[:, :, r0:r1]
+            expected = expected.reshape(4, 10, -1)
+            tile = reader.read(r0)
+            reader.hold_last(True)
+            assert len(tile.pieces) == tile_rows // rows_per_piece and tile.num_pixels == tile_rows * 7
+            for k, piece in enumerate(tile.pieces):
+                assert piece.flags.c_contiguous and piece.ctypes.data % BUFFER_ALIGNMENT_BYTES == 0
+                np.testing.assert_array_equal(piece, expected[..., k * sub : (k + 1) * sub], err_msg=f"{r0} {k}")
+            np.testing.assert_array_equal(tile.frames.reshape(4, 10, -1), expected)
+        assert len(reader.buffers) == 2  # each tile held while the next was read
+
+
 def test_a_capture_truncated_after_it_was_opened_fails_naming_the_rows(tmp_path):
     frames = np.random.default_rng(7).integers(0, 2**16, (4, 10, 16, 7), dtype=np.uint16)
     path = _chunked(tmp_path / "c.h5", frames, chunks=(1, 4, 8, 7))
@@ -154,6 +190,12 @@ def test_a_capture_truncated_after_it_was_opened_fails_naming_the_rows(tmp_path)
         cap.read_tile_into(buf, slice(0, 8))  # that chunk's rows are elsewhere: still read
         with pytest.raises(CaptureError, match=r"rows 8:16 could not be read .*bytes read"):
             cap.read_tile_into(buf, slice(8, 16))
+        from cohflash_jax.reconstruct.engine import PieceReader
+
+        reader = PieceReader(cap, 8, 2)  # read straight into sub-tiles: the same error
+        reader.read(0)
+        with pytest.raises(CaptureError, match=r"rows 8:16 could not be read .*bytes read"):
+            reader.read(8)
 
 
 def _write(path, **over):

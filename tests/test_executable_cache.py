@@ -393,16 +393,20 @@ def test_a_reconstruct_process_loads_its_last_runs_programs_while_it_imports(tmp
 
 def test_a_stream_over_two_cpu_streams_takes_its_last_runs_programs(tmp_path):
     """`cohflash stream` runs on two CPU devices (`runtime.COMMAND_CPU_STREAMS`), a short
-    sweep's sub-tiles dealt out to both: its next run takes every program from the import's
-    loads, each onto its device, compiling none. (Loaded for every device, the prefetched
-    programs refused one device's arguments and were compiled again every run.)"""
+    sweep's sub-tiles dealt out to both: each program is compiled once, for the first device,
+    and its entry loaded for the second (`runtime.load_on_cpu_device`); the next run takes
+    every program from the import's loads, each onto its device, compiling none. (Loaded for
+    every device, the prefetched programs refused one device's arguments and were compiled
+    again every run.)"""
     from cohflash_jax.cli import main
 
     capture = tmp_path / "c.h5"  # 512 px of 35 frames: two sub-tiles, one on each device
     assert main(["simulate", "planar", "--size", "16x32", "--steps", "35", "--out", str(capture), "--quiet"]) == 0
     cache, argv = tmp_path / "cache", ["stream", capture, "--out-dir", tmp_path / "maps"]
     first = prefetched_run(argv, cache)
-    assert first["compiled"] == 4  # I/Q with the carrier axis, rotation with the inversion: per device
+    # I/Q with the carrier axis, rotation with the inversion: compiled for one device, loaded for the other
+    assert first["compiled"] == 2 and first["loaded"] == 2
+    assert len(list((cache / "executables").glob("*.exe"))) == 2
     second = prefetched_run(argv, cache)
     assert second["compiled"] == 0 and second["started"] == second["used"] == second["loaded"] == 4
 

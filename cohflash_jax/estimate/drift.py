@@ -147,12 +147,22 @@ class CarrierAlignment:
         return 0.0 if self.phase_rad is None else float(np.std(self.phase_rad))
 
 
+def pixel_columns(frames, pixels):
+    """The frames (4, N, K) of `pixels` (K,) of `frames` (4, N, P), or of (4, N, S, Q): S pieces
+    of Q pixels, P = S·Q in row-major order."""
+    if frames.ndim == 3:
+        return frames[..., pixels]
+    piece, column = np.divmod(pixels, frames.shape[-1])
+    return frames[:, :, piece, column]
+
+
 def choose_carrier_alignment(
     requested: str, frames=None, iq_weights=None, iq_bias=None, dark=None, gain=None
 ) -> CarrierAlignment:
     """The alignment for `requested` ∈ `CARRIER_ALIGNMENTS`. For "auto", `frames` (4, N, P) in
-    DN — a sample of the capture, e.g. its first tile — are searched for a common drift
-    (`initial_common_drift`) in the `DRIFT_SAMPLE_PIXELS` pixels with the strongest mean term."""
+    DN — a sample of the capture, e.g. its first tile, or (4, N, S, Q) of it in S pieces of Q
+    pixels — are searched for a common drift (`initial_common_drift`) in the
+    `DRIFT_SAMPLE_PIXELS` pixels with the strongest mean term."""
     if requested == "static":
         return CarrierAlignment("static", "requested (--carrier static)")
     if requested == "tracked":
@@ -163,7 +173,7 @@ def choose_carrier_alignment(
     if n <= DRIFT_MIN_WINDOWS * DRIFT_WINDOW_FRAMES:
         return CarrierAlignment("static", f"auto: {n} frames are too few to look for a carrier drift")
     # the strongest mean terms, from the frames' means (I/Q is linear in the frames)
-    means = np.mean(frames, axis=1, dtype=np.float64)[:, None]  # (4, 1, P)
+    means = np.mean(frames, axis=1, dtype=np.float64).reshape(4, 1, -1)  # (4, 1, P)
     # in NumPy: a one-off survey, with no programs to compile or load in a fresh process
     pick = lambda a, idx: None if a is None else np.asarray(a, np.float32)[:, idx]
     everywhere = slice(None)
@@ -176,7 +186,7 @@ def choose_carrier_alignment(
     keep = keep[strength[keep] >= 0]
     if keep.size < 2:
         return CarrierAlignment("static", "auto: too few finite pixels to look for a carrier drift")
-    x = np.asarray(frames[..., keep], np.float32)
+    x = np.asarray(pixel_columns(frames, keep), np.float32)
     i, q = iq_from_frames(x, weights, bias, pick(dark, keep), pick(gain, keep))
     i, q = np.asarray(i, np.float64), np.asarray(q, np.float64)
     phase, note = initial_common_drift(i, q)

@@ -20,7 +20,7 @@ from ..fisher import crlb_at_unit_snr_m
 from ..instrument import Instrument
 from ..progress import progress_bar
 from ..runtime import QUICK_COMPILE_MAX_PIXELS, quick_compile, retain_freed_memory
-from .engine import BlockReader, TileDispatcher, sub_tile_pixels
+from .engine import BlockReader, PieceReader, TileDispatcher, TilePieces, sub_tile_pixels
 from .plan import TilePlan, build_plan, frequency_path
 from .policy import ReconstructOptions
 
@@ -81,6 +81,8 @@ def align_carrier(options: ReconstructOptions, instrument: Instrument, frames, d
     `gain` (4, P) where known."""
     if options.carrier != "auto":
         return choose_carrier_alignment(options.carrier)
+    if isinstance(frames, TilePieces):
+        frames = frames.frames  # (4, N, pieces, sub): the survey reads it as (4, N, P)
     iq_w, iq_b = instrument.hybrid.iq_matrix_dn(1.0)
     return choose_carrier_alignment("auto", frames, iq_w, iq_b, dark, gain)
 
@@ -157,7 +159,14 @@ class TileSource:
             self.dark = None if self.dark is None else register_pixel_map(self.dark, registration_maps)
             self.gain = None if self.gain is None else register_pixel_map(self.gain, registration_maps)
         else:
-            self.reader = BlockReader(capture, rows)
+            self.reader = PieceReader.of(capture, rows) or BlockReader(capture, rows)
+
+    def sub_tile_pixels(self, num_frames: int) -> int:
+        """Pixels per dispatched sub-tile: the pieces the reader reads (`PieceReader`), else
+        `engine.sub_tile_pixels`."""
+        if isinstance(self.reader, PieceReader):
+            return self.reader.sub
+        return sub_tile_pixels(self.rows * self.w, num_frames)
 
     def map_tile(self, arr, r0, r1, fill):
         """Rows r0:r1 of a (4, H, W) per-pixel map, padded to the tile shape → (4, P)."""
@@ -173,7 +182,8 @@ class TileSource:
             self.reader.hold_last(held)
 
     def inputs(self, r0: int) -> tuple:
-        """(r1, frames (4, N, P), data status (P,) or None, dark (4, P), gain (4, P)) of the tile at row r0."""
+        """(r1, frames (4, N, P) or its `TilePieces`, data status (P,) or None, dark (4, P), gain (4, P))
+        of the tile at row r0."""
         r1 = min(self.h, r0 + self.rows)
         maps = (self.map_tile(self.dark, r0, r1, 0.0), self.map_tile(self.gain, r0, r1, 1.0))
         if self.registered is not None:
@@ -257,7 +267,7 @@ def reconstruct_capture(
         alignment = choose_carrier_alignment("static")
     elif alignment is None:
         alignment = align_carrier(options, instrument, first[1], first[3], first[4])
-    sub_px = sub_tile_pixels(rows * w, n)
+    sub_px = source.sub_tile_pixels(n)
     plan, dispatcher = plan_and_dispatcher(instrument, options, saturation, alignment, sub_px)
     total = (band_end - band_start) * w
     bar = progress_bar(total=total, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True)

@@ -124,14 +124,17 @@ class TileDispatcher:
         return self.no_status[pixels, device]
 
     def dispatch(self, frames, dark=None, data_status=None, gain=None) -> PendingTile:
-        """Dispatch a tile (4, N, P) with its per-pixel maps (4, P) and upstream status (P,)."""
-        p = frames.shape[-1]
+        """Dispatch a tile (4, N, P), or read as its sub-tiles (`TilePieces` of `sub_px`), with
+        its per-pixel maps (4, P) and upstream status (P,)."""
+        p = frames.num_pixels if isinstance(frames, TilePieces) else frames.shape[-1]
         sub = self.sub_px or p  # a sub-tile larger than the tile pads it (`pixel_bucket`)
         several = len(self.devices) > 1
 
         def piece(arr, k, device):
             if arr is None:
                 return None
+            if isinstance(arr, TilePieces):  # read as its sub-tiles: aliased, not copied
+                return jax.device_put(arr.pieces[k], device)
             part = arr[..., k * sub : (k + 1) * sub]
             if isinstance(part, np.ndarray):  # one host copy at most (none for a whole contiguous tile)
                 whole = part.shape[-1] == sub and part.flags.c_contiguous
@@ -159,6 +162,108 @@ class TileDispatcher:
         # host frames cut into several pieces were copied (`aligned_copy`); one whole piece is
         # aliased on the CPU, and on a GPU its transfer may still be reading them
         return PendingTile(parts, p, holds_frames=not (isinstance(frames, np.ndarray) and pieces > 1))
+
+
+@dataclasses.dataclass(frozen=True)
+class TilePieces:
+    """A tile read as its sub-tiles (`PieceReader`): `pieces`, each (4, N, sub) frames of whole
+    consecutive rows, C-contiguous and `BUFFER_ALIGNMENT_BYTES`-aligned, so that a CPU device
+    array aliases it; `frames`, the same memory seen as (4, N, pieces, sub), pixels in
+    row-major order (the carrier survey's sample)."""
+
+    pieces: list
+    frames: np.ndarray
+
+    @property
+    def num_pixels(self) -> int:
+        return len(self.pieces) * self.pieces[0].shape[-1]
+
+
+def piece_rows(rows: int, num_frames: int, width: int) -> int | None:
+    """Rows per sub-tile where a tile of `rows` rows is read straight into its sub-tiles
+    (`PieceReader`), on the CPU: the most whole rows within `sub_tile_pixels`' size that divide
+    the tile, and at least half that size; None where no such number is (a piece of one row
+    would be far smaller than a sub-tile: the tile is read whole and its sub-tiles copied)."""
+    if jax.default_backend() != "cpu":
+        return None
+    sub = sub_tile_pixels(rows * width, num_frames)
+    fits = [k for k in range(1, rows + 1) if rows % k == 0 and k * width <= sub]
+    return fits[-1] if fits and 2 * fits[-1] * width >= sub and fits[-1] < rows else None
+
+
+class PieceReader:
+    """Row tiles of a capture read straight into their sub-tiles of `rows_per_piece` whole rows
+    (`Capture.read_tile_into_pieces`): each chunk scattered by one `preadv` to the pieces its
+    rows belong to, so no piece is copied out of a tile buffer before it is dispatched (a
+    `BlockReader` tile cut into sub-tiles is). A piece is aliased by its device array until
+    its tile is gathered, so tiles alternate between two buffers (`hold_last`; the caller
+    gathers tile k before reading tile k + 2). None from `of` where the capture's frames are
+    not stored for it (`Capture.scatter_tables`)."""
+
+    def __init__(self, capture: Capture, rows: int, rows_per_piece: int):
+        n, h, w = capture.shape
+        self.capture, self.rows, self.h, self.rows_per_piece = capture, rows, h, rows_per_piece
+        self.dtype = capture.frames.dtype
+        self.sub = rows_per_piece * w
+        self.piece_shape = (4, n, self.sub)
+        nbytes = math.prod(self.piece_shape) * self.dtype.itemsize
+        self.stride = -(-nbytes // BUFFER_ALIGNMENT_BYTES) * BUFFER_ALIGNMENT_BYTES
+        self.buffers = []  # (TilePieces, scatter tables), made as needed: at most two
+        self.last = self.held = None
+
+    @classmethod
+    def of(cls, capture: Capture, rows: int) -> PieceReader | None:
+        n, _, w = capture.shape
+        rows_per_piece = piece_rows(rows, n, w)
+        if rows_per_piece is None or capture.store != "hdf5" or capture.direct_reader is None:
+            return None
+        reader = cls(capture, rows, rows_per_piece)
+        return reader if reader.new_buffer() is not None else None
+
+    def new_buffer(self):
+        """Pieces for one tile in one aligned allocation (`tile_buffer`), and their scatter
+        tables; None where the capture cannot scatter into them."""
+        count = self.rows // self.rows_per_piece
+        raw = tile_buffer((count * self.stride + BUFFER_ALIGNMENT_BYTES,), np.uint8)
+        start = -raw.ctypes.data % BUFFER_ALIGNMENT_BYTES
+        size = math.prod(self.piece_shape) * self.dtype.itemsize
+        pieces = [
+            raw[start + k * self.stride : start + k * self.stride + size].view(self.dtype).reshape(self.piece_shape)
+            for k in range(count)
+        ]
+        tables = self.capture.scatter_tables(pieces, self.rows, self.rows_per_piece)
+        if tables is None:
+            return None
+        item = self.dtype.itemsize
+        n = self.piece_shape[1]
+        frames = np.lib.stride_tricks.as_strided(
+            raw[start:].view(self.dtype),
+            shape=(4, n, count, self.sub),
+            strides=(n * self.sub * item, self.sub * item, self.stride, item),
+            writeable=False,
+        )
+        self.buffers.append((TilePieces(pieces, frames), tables))
+        return self.buffers[-1]
+
+    def hold_last(self, held: bool) -> None:
+        """Whether the last tile read is still in use (its buffer not to be read into next)."""
+        self.held = self.last if held else None
+
+    def read(self, r0: int) -> TilePieces:
+        r1 = min(self.h, r0 + self.rows)
+        free = [k for k in range(len(self.buffers)) if k != self.held]
+        if not free:
+            if self.new_buffer() is None:
+                raise RuntimeError(f"{self.capture.path}: its frames cannot be read straight into sub-tiles")
+            free = [len(self.buffers) - 1]
+        self.last = free[0]
+        tile, tables = self.buffers[self.last]
+        if r1 - r0 < self.rows:  # pad the last tile so every tile has one compiled shape
+            rows_read = (r1 - r0) * self.sub // self.rows_per_piece
+            for k, piece in enumerate(tile.pieces):
+                piece[..., max(0, min(self.sub, rows_read - k * self.sub)) :] = 0
+        self.capture.read_tile_into_pieces(tile.pieces, tables, slice(r0, r1))
+        return tile
 
 
 class BlockReader:
