@@ -3,7 +3,9 @@
 Row tiles are read into reused buffers (`BlockReader`); each tile is cut into sub-tiles
 of a few hundred pixels (`sub_tile_pixels`) whose frames fit in cache, dispatched
 asynchronously and in turn to the stream devices (`TileDispatcher`); a tile is gathered
-(`PendingTile.gather`) while the next one is read and computed. On a GPU a tile is one piece.
+(`PendingTile.gather`) while the next one is read and computed. Where a capture's chunks can be
+read straight from the file, a tile is read into its sub-tiles of whole rows instead
+(`PieceReader`), none copied. On a GPU a tile is one piece.
 Measured sizes and timings: docs/performance.md.
 """
 
@@ -181,12 +183,16 @@ class TilePieces:
 
 def piece_rows(rows: int, num_frames: int, width: int) -> int | None:
     """Rows per sub-tile where a tile of `rows` rows is read straight into its sub-tiles
-    (`PieceReader`), on the CPU: the most whole rows within `sub_tile_pixels`' size that divide
-    the tile, and at least half that size; None where no such number is (a piece of one row
-    would be far smaller than a sub-tile: the tile is read whole and its sub-tiles copied)."""
+    (`PieceReader`), on the CPU, for a tile of at least `MIN_PIECES` sub-tiles: the most whole
+    rows within `sub_tile_pixels`' size that divide the tile, and at least half that size; None
+    where no such number is (a piece of one row would be far smaller than a sub-tile: the tile
+    is read whole and its sub-tiles copied) or the tile is smaller (a region of interest keeps
+    its `pixel_bucket`, and the programs its neighbours in size run)."""
     if jax.default_backend() != "cpu":
         return None
     sub = sub_tile_pixels(rows * width, num_frames)
+    if rows * width < MIN_PIECES * sub:
+        return None
     fits = [k for k in range(1, rows + 1) if rows % k == 0 and k * width <= sub]
     return fits[-1] if fits and 2 * fits[-1] * width >= sub and fits[-1] < rows else None
 
@@ -215,7 +221,8 @@ class PieceReader:
     def of(cls, capture: Capture, rows: int) -> PieceReader | None:
         n, _, w = capture.shape
         rows_per_piece = piece_rows(rows, n, w)
-        if rows_per_piece is None or capture.store != "hdf5" or capture.direct_reader is None:
+        small = capture.shape[1] * w <= QUICK_COMPILE_MAX_PIXELS  # a region of interest: its bucket
+        if rows_per_piece is None or small or capture.store != "hdf5" or capture.direct_reader is None:
             return None
         reader = cls(capture, rows, rows_per_piece)
         return reader if reader.new_buffer() is not None else None
