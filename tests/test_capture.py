@@ -162,6 +162,7 @@ def test_tiles_read_straight_into_their_sub_tiles_equal_hdf5_reads(tmp_path, chu
 
     frames = np.random.default_rng(8).integers(0, 2**16, (4, 10, 22, 7), dtype=np.uint16)
     with Capture(_chunked(tmp_path / "c.h5", frames, chunks=chunks)) as cap:
+        assert PieceReader.of(cap, tile_rows) is None  # a region of interest keeps its pixel bucket
         reader = PieceReader(cap, tile_rows, rows_per_piece)
         assert reader.new_buffer() is not None
         sub = rows_per_piece * 7
