@@ -3,6 +3,7 @@
 import os
 
 import h5py
+import jax
 import numpy as np
 import pytest
 
@@ -162,7 +163,6 @@ def test_tiles_read_straight_into_their_sub_tiles_equal_hdf5_reads(tmp_path, chu
 
     frames = np.random.default_rng(8).integers(0, 2**16, (4, 10, 22, 7), dtype=np.uint16)
     with Capture(_chunked(tmp_path / "c.h5", frames, chunks=chunks)) as cap:
-        assert PieceReader.of(cap, tile_rows) is None  # a region of interest keeps its pixel bucket
         reader = PieceReader(cap, tile_rows, rows_per_piece)
         assert reader.new_buffer() is not None
         sub = rows_per_piece * 7
@@ -179,6 +179,24 @@ def test_tiles_read_straight_into_their_sub_tiles_equal_hdf5_reads(tmp_path, chu
                 np.testing.assert_array_equal(piece, expected[..., k * sub : (k + 1) * sub], err_msg=f"{r0} {k}")
             np.testing.assert_array_equal(tile.frames.reshape(4, 10, -1), expected)
         assert len(reader.buffers) == 2  # each tile held while the next was read
+
+
+def test_a_region_of_interest_is_read_whole_a_larger_capture_in_pieces(tmp_path):
+    """A region of interest keeps its pixel bucket, one sub-tile, and the programs its
+    neighbours in size run, though two pieces of half its rows would fit it; a larger capture
+    of the same sweep is read straight into its sub-tiles, of the size a copied tile's have."""
+    from cohflash_jax.reconstruct.engine import PieceReader, sub_tile_pixels
+
+    if jax.default_backend() != "cpu":
+        pytest.skip("sub-tiles are the CPU's: on a GPU a tile is one piece")
+    rng = np.random.default_rng(9)
+    small = _chunked(tmp_path / "s.h5", rng.integers(0, 99, (4, 3000, 16, 16), np.uint16), chunks=(1, 8, 16, 16))
+    with Capture(small) as cap:
+        assert PieceReader.of(cap, 16) is None  # two 8-row pieces of 128 px would fit its 256 px
+    large = _chunked(tmp_path / "l.h5", rng.integers(0, 99, (4, 3000, 32, 48), np.uint16), chunks=(1, 8, 32, 48))
+    with Capture(large) as cap:
+        reader = PieceReader.of(cap, 32)
+        assert reader is not None and reader.sub == sub_tile_pixels(32 * 48, 3000) == 384
 
 
 def test_a_capture_truncated_after_it_was_opened_fails_naming_the_rows(tmp_path):
