@@ -88,22 +88,35 @@ class DirectChunkReader:
         rc = self.chunks[2]
         return r0 % rc == 0 and (r1 - r0) % rc == 0 and r1 > r0
 
-    def read_rows_into(self, out: np.ndarray, rows: slice) -> None:
-        """Frames of rows `rows` (`covers` them) into the first rows of `out` (4, N, ≥h, W),
-        C-contiguous, of the dataset's dtype."""
-        _, n, _, _ = self.shape
+    def chunks_of(self, rows: slice):
+        """The chunks holding rows `rows` (`covers` them), in file order by CCD, frames and band:
+        (CCD c, frame chunk g, its first frame n0, the frames of data it holds, band b of the
+        rows, its first row, the chunk's file offset, its bytes of data)."""
+        _, n, _, w = self.shape
         r0, r1, _ = rows.indices(self.shape[2])
         _, fc, rc, _ = self.chunks
         for c in range(4):
-            for n0 in range(0, n, fc):
+            for g, n0 in enumerate(range(0, n, fc)):
                 k = min(fc, n - n0)  # a last chunk of frames holds fewer than fc frames of data
-                for band in range(r0, r1, rc):
-                    target = out[c, n0 : n0 + k, band - r0 : band - r0 + rc]
-                    views = [target] if target.flags.c_contiguous else list(target)
-                    want = sum(v.nbytes for v in views)
-                    got = os.preadv(self.fd, views, self.offsets[(c, n0, band, 0)])
-                    if got != want:
-                        raise OSError(f"chunk {(c, n0, band, 0)}: {got} of {want} bytes read (a truncated file?)")
+                for b, band in enumerate(range(r0, r1, rc)):
+                    yield c, g, n0, k, b, band, self.offsets[(c, n0, band, 0)], k * rc * w * self.itemsize
+
+    @staticmethod
+    def check_read(got: int, want: int, chunk: tuple) -> None:
+        """A chunk read short (a truncated file) or failed, as an `OSError` naming the chunk."""
+        if got != want:
+            error = f" ({os.strerror(ctypes.get_errno())})" if got < 0 else " (a truncated file?)"
+            raise OSError(f"chunk {chunk}: {got} of {want} bytes read{error}")
+
+    def read_rows_into(self, out: np.ndarray, rows: slice) -> None:
+        """Frames of rows `rows` (`covers` them) into the first rows of `out` (4, N, ≥h, W),
+        C-contiguous, of the dataset's dtype."""
+        r0 = rows.indices(self.shape[2])[0]
+        rc = self.chunks[2]
+        for c, _, n0, k, _, band, offset, want in self.chunks_of(rows):
+            target = out[c, n0 : n0 + k, band - r0 : band - r0 + rc]
+            got = os.preadv(self.fd, [target] if target.flags.c_contiguous else list(target), offset)
+            self.check_read(got, want, (c, n0, band, 0))
 
     def scatters(self, rows: int, rows_per_piece: int) -> bool:
         """Whether `read_rows_into_pieces` reads a tile of `rows` rows (whole chunk bands) in
@@ -123,6 +136,7 @@ class DirectChunkReader:
         addresses = np.array([p.ctypes.data for p in pieces], np.uintp)
         frame_bytes = rows_per_piece * w * item
         groups = -(-n // fc)
+        frames = np.minimum(np.arange(groups * fc).reshape(groups, fc), n - 1)  # past N: never read
         tables = []
         for band in range(0, rows, rc):
             rel = np.arange(band, band + rc)
@@ -130,12 +144,11 @@ class DirectChunkReader:
             starts = np.flatnonzero(np.r_[True, piece[1:] != piece[:-1]])  # runs of rows in one piece
             counts = np.diff(np.r_[starts, rc])
             base = addresses[piece[starts]] + (row[starts] * w * item).astype(np.uintp)  # (runs,)
-            frames = np.arange(groups * fc).reshape(groups, fc)
             table = np.empty((4, groups, fc, starts.size), IOVEC)
             table["base"] = (
                 base[None, None, None, :]
                 + (np.arange(4) * n * frame_bytes).astype(np.uintp)[:, None, None, None]
-                + (np.minimum(frames, n - 1) * frame_bytes).astype(np.uintp)[None, :, :, None]
+                + (frames * frame_bytes).astype(np.uintp)[None, :, :, None]
             )
             table["length"] = (counts * w * item).astype(np.uintp)[None, None, None, :]
             tables.append(table.reshape(4, groups, fc * starts.size))
@@ -146,27 +159,13 @@ class DirectChunkReader:
         straight into the pieces of `scatter_table`'s `tables`: each chunk with one `preadv`
         that scatters its frames' rows to the pieces they belong to, so a piece is ready to be
         computed on without a copy."""
-        _, n, _, w = self.shape
-        r0, r1, _ = rows.indices(self.shape[2])
-        _, fc, rc, _ = self.chunks
-        bands = list(enumerate(range(r0, r1, rc)))
+        fc = self.chunks[1]
         start = [t.ctypes.data for t in tables]  # each chunk's IOVECs: (c, g) rows of its band's table
         runs = [t.shape[-1] // fc for t in tables]
         groups = tables[0].shape[1]
-        for c in range(4):
-            for g, n0 in enumerate(range(0, n, fc)):
-                k = min(fc, n - n0)  # a last chunk of frames holds fewer than fc frames of data
-                want = k * rc * w * self.itemsize
-                for b, band in bands:
-                    row = (c * groups + g) * fc * runs[b]
-                    address = start[b] + row * IOVEC.itemsize
-                    got = PREADV(self.fd, address, k * runs[b], self.offsets[(c, n0, band, 0)])
-                    if got != want:
-                        error = ctypes.get_errno()
-                        raise OSError(
-                            f"chunk {(c, n0, band, 0)}: {got} of {want} bytes read"
-                            + (f" ({os.strerror(error)})" if got < 0 else " (a truncated file?)")
-                        )
+        for c, g, n0, k, b, band, offset, want in self.chunks_of(rows):
+            address = start[b] + (c * groups + g) * fc * runs[b] * IOVEC.itemsize
+            self.check_read(PREADV(self.fd, address, k * runs[b], offset), want, (c, n0, band, 0))
 
     def close(self):
         if self.fd is not None:
