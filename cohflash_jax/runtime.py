@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import contextvars
 import ctypes
@@ -158,34 +159,78 @@ def async_filter_jit(fun=None, *, loop_emitters: bool = False):
         may choose what it traces)."""
         return jax.jit(flat_fun(static_leaves, mask, treedef))
 
-    @functools.wraps(fun)
-    def call(*args, **kwargs):
+    def split(args, kwargs, is_array):
         # one flatten of every argument, its leaves split into arrays (the program's inputs)
         # and the rest (static: part of the program's key, so hashable), as `eqx.partition`
         # would split them but without its per-call tree maps (the 10 Hz stream: ~100 calls a map)
         leaves, treedef = jax.tree.flatten((args, tuple(sorted(kwargs.items()))))
-        mask = tuple(map(eqx.is_array, leaves))
+        mask = tuple(map(is_array, leaves))
         arrays = [x for x, m in zip(leaves, mask) if m]
         static_leaves = tuple(x for x, m in zip(leaves, mask) if not m)
-        quick = _QUICK_COMPILE.get()
-        if any(isinstance(x, jax.core.Tracer) for x in arrays):  # inside another transformation
-            return traced(static_leaves, mask, treedef, quick)(*arrays)
+        return arrays, static_leaves, mask, treedef
+
+    def get_program(arrays, static_leaves, mask, treedef, quick):
+        """The program for these arrays (compiled, loaded, or waited for where `prepare` is
+        getting it in another thread)."""
         signature = tuple(map(_argument_signature, arrays))
         key = (static_leaves, mask, treedef, signature, quick)
         program = programs.get(key)
+        if isinstance(program, concurrent.futures.Future):
+            try:
+                program = programs[key] = program.result()
+            except Exception:  # the preparation failed: got here as if never prepared
+                programs.pop(key, None)
+                program = None
         if program is None:
             flat = flat_fun(static_leaves, mask, treedef)
             parts = ((static_leaves, mask), treedef, signature)
             program = programs[key] = EXECUTABLES.program(fun, flat, parts, arrays, quick, loop_emitters)
-        return program(*arrays)
+        return program
 
+    @functools.wraps(fun)
+    def call(*args, **kwargs):
+        arrays, static_leaves, mask, treedef = split(args, kwargs, eqx.is_array)
+        quick = _QUICK_COMPILE.get()
+        if any(isinstance(x, jax.core.Tracer) for x in arrays):  # inside another transformation
+            return traced(static_leaves, mask, treedef, quick)(*arrays)
+        return get_program(arrays, static_leaves, mask, treedef, quick)(*arrays)
+
+    def prepare(*args, **kwargs) -> None:
+        """Get the program a call with arguments like these would run (loaded from the
+        executable cache or compiled), without running it: arrays may be given as
+        `jax.ShapeDtypeStruct`s with their sharding. Meant for another thread than the caller's
+        (`reconstruct.engine.TileDispatcher.prepare`): a call for the same program made
+        meanwhile waits for it rather than compiling it a second time."""
+        like_array = lambda x: eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
+        arrays, static_leaves, mask, treedef = split(args, kwargs, like_array)
+        quick = _QUICK_COMPILE.get()
+        key = (static_leaves, mask, treedef, tuple(map(_argument_signature, arrays)), quick)
+        pending = concurrent.futures.Future()
+        if programs.setdefault(key, pending) is not pending:  # got, or being got, already
+            return
+        try:
+            flat = flat_fun(static_leaves, mask, treedef)
+            parts = ((static_leaves, mask), treedef, key[3])
+            program = EXECUTABLES.program(fun, flat, parts, arrays, quick, loop_emitters)
+        except BaseException as exc:
+            programs.pop(key, None)
+            pending.set_exception(exc)
+            raise
+        programs[key] = program
+        pending.set_result(program)
+
+    call.prepare = prepare
     return call
 
 
 def first_device(leaves):
-    """The device the first placed array among `leaves` is on, or None where none is placed
-    (NumPy arrays: JAX's default device runs them)."""
-    return next((d for x in leaves for d in getattr(x, "devices", lambda: ())()), None)
+    """The device the first placed array (or `jax.ShapeDtypeStruct` with a sharding) among
+    `leaves` is on, or None where none is placed (NumPy arrays: JAX's default device runs them)."""
+    for x in leaves:
+        sharding = None if isinstance(x, np.ndarray) else getattr(x, "sharding", None)
+        if sharding is not None:
+            return next(iter(sharding.device_set))
+    return None
 
 
 def _argument_signature(x):
@@ -460,6 +505,11 @@ class ExecutableCache:
         self.prefetched.update({(p, d): pool.submit(self._deserialize, p, [d]) for p, d in wanted})
         pool.shutdown(wait=False)  # its thread ends with the last load
         return True
+
+    def loading(self) -> bool:
+        """Whether entries `prefetch` started loading are still to be taken: the programs this
+        process is about to run are then most likely on disk already."""
+        return bool(self.prefetched)
 
     # bound of the notes of recent runs (`remember`): a few hundred
     MAX_NOTE_BYTES = 64 * 2**10

@@ -9,6 +9,7 @@ import sys
 import textwrap
 
 import numpy as np
+import pytest
 
 RUN = textwrap.dedent(
     """
@@ -430,3 +431,98 @@ def test_an_option_this_xla_does_not_know_is_left_out_not_the_compile():
     assert "xla_backend_optimization_level" not in runtime.UNKNOWN_XLA_OPTIONS
     with pytest.raises(Exception, match="xla_backend_optimization_level"):  # a known option's bad value
         runtime.compile_lowered(lowered, {"xla_backend_optimization_level": "not a level"})
+
+
+def test_a_program_prepared_in_a_thread_is_compiled_once_and_a_call_meanwhile_waits(tmp_path, monkeypatch):
+    """`prepare` gets a program from its arguments' shapes (`jax.ShapeDtypeStruct`s placed on
+    a device) in another thread; a call made while it compiles waits for that compile instead
+    of compiling the program again, and runs it. A preparation that fails leaves the call to
+    compile the program itself."""
+    import threading
+
+    import jax
+    import jax.numpy as jnp
+
+    from cohflash_jax import runtime
+
+    monkeypatch.setattr(runtime.EXECUTABLES, "folder", tmp_path)  # a cold cache of this test's own
+    started, compiled_in = threading.Event(), []
+    compile_now = runtime.compile_lowered
+
+    def slow_compile(*args, **kwargs):  # the compile takes long enough for a call to arrive
+        compiled_in.append(threading.current_thread().name)
+        started.set()
+        threading.Event().wait(0.5)
+        return compile_now(*args, **kwargs)
+
+    monkeypatch.setattr(runtime, "compile_lowered", slow_compile)
+
+    @runtime.async_filter_jit
+    def scaled_sums(x, factor):
+        return jnp.cumsum(jnp.sin(x) * factor)
+
+    x = jnp.linspace(0.0, 3.0, 999)
+    like = jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding)
+    thread = threading.Thread(target=scaled_sums.prepare, args=(like, 2.0), name="preparing")
+    thread.start()
+    assert started.wait(60)
+    out = scaled_sums(x, 2.0)  # while the thread compiles
+    thread.join()
+    assert compiled_in == ["preparing"] and len(list(tmp_path.glob("scaled_sums-*.exe"))) == 1
+    np.testing.assert_allclose(np.asarray(out), np.cumsum(np.sin(np.asarray(x)) * 2.0), rtol=1e-12)
+    scaled_sums.prepare(like, 2.0)  # already there: nothing to do
+    assert compiled_in == ["preparing"]
+
+    monkeypatch.setattr(runtime, "compile_lowered", compile_now)
+    get_program = runtime.EXECUTABLES.program
+
+    def failing_get(*args, **kwargs):
+        compiled_in.append(threading.current_thread().name)
+        if threading.current_thread().name == "failing":
+            raise RuntimeError("no program here")
+        return get_program(*args, **kwargs)
+
+    monkeypatch.setattr(runtime.EXECUTABLES, "program", failing_get)
+    other, raised = jax.ShapeDtypeStruct((7,), x.dtype, sharding=x.sharding), []
+    thread = threading.Thread(
+        target=lambda: raised.append(pytest.raises(RuntimeError, scaled_sums.prepare, other, 3.0))
+    )
+    thread.name = "failing"
+    thread.start()
+    thread.join()
+    assert raised  # the preparation raised in its thread
+    np.testing.assert_allclose(np.asarray(scaled_sums(jnp.ones(7), 3.0)), 3 * np.sin(1.0) * np.arange(1, 8))
+    assert compiled_in[1:] == ["failing", "MainThread"]
+
+
+def test_a_dispatcher_prepares_the_inversion_a_tile_of_a_long_sweep_runs(tmp_path, monkeypatch):
+    """`TileDispatcher.prepare` compiles, from a tile's shapes alone, the very inversion program
+    each device then runs on its sub-tiles (a long sweep: the I/Q programs are traced for their
+    outputs' shapes only): dispatching the tile compiles the two I/Q programs, not a second
+    inversion, and the results are the unprepared run's."""
+    import jax
+
+    import cohflash_jax as cf
+    from cohflash_jax import runtime
+    from cohflash_jax.reconstruct import ReconstructOptions, TileDispatcher, build_plan
+    from cohflash_jax.reconstruct.programs import SPLIT_AXIS_MIN_FRAMES
+
+    inst = cf.Instrument.paper(SPLIT_AXIS_MIN_FRAMES)
+    frames = np.asarray(cf.simulate(cf.planar(12.0, 0.9, effects=("shot_noise",)), inst, 4, 8, jax.random.key(5)))
+    frames = frames.reshape(4, SPLIT_AXIS_MIN_FRAMES, -1)
+    monkeypatch.setattr(runtime.EXECUTABLES, "folder", tmp_path)
+    with runtime.quick_compile():
+        plan = build_plan(inst, ReconstructOptions(method="ml", progress=False), 16383.0)
+        dispatcher = TileDispatcher(plan, sub_px=16)  # two sub-tiles: one a device where there are two
+        before = runtime.EXECUTABLES.compiled
+        like = jax.ShapeDtypeStruct(frames.shape, frames.dtype)
+        dispatcher.prepare(like).result(timeout=600)
+        assert runtime.EXECUTABLES.compiled - before == 1  # the inversion alone
+        assert [p.name.split("-")[0] for p in tmp_path.glob("*.exe")] == ["invert_sequence"]
+        prepared = dispatcher.dispatch(frames).gather()
+        assert runtime.EXECUTABLES.compiled - before == 3  # and the two I/Q programs
+    monkeypatch.setattr(runtime.EXECUTABLES, "folder", None)  # no cache: compiled afresh, unprepared
+    with runtime.quick_compile():
+        plain = TileDispatcher(plan, sub_px=16).dispatch(frames).gather()
+    for k in plain:
+        np.testing.assert_array_equal(prepared[k], plain[k], err_msg=k)

@@ -19,7 +19,7 @@ from ..estimate.drift import CarrierAlignment, choose_carrier_alignment
 from ..fisher import crlb_at_unit_snr_m
 from ..instrument import Instrument
 from ..progress import progress_bar
-from ..runtime import QUICK_COMPILE_MAX_PIXELS, quick_compile, retain_freed_memory
+from ..runtime import EXECUTABLES, QUICK_COMPILE_MAX_PIXELS, quick_compile, retain_freed_memory
 from .engine import BlockReader, PieceReader, TileDispatcher, TilePieces, sub_tile_pixels
 from .plan import TilePlan, build_plan, frequency_path
 from .policy import ReconstructOptions
@@ -71,6 +71,7 @@ def reconstruct_array(
         alignment = align_carrier(options, instrument, frames.reshape(4, n, h * w), dark, gain)
     _, dispatcher = plan_and_dispatcher(instrument, options, saturation_dn, alignment, sub_tile_pixels(h * w, n))
     with quick_compile(h * w <= QUICK_COMPILE_MAX_PIXELS):
+        dispatcher.prepare(frames.reshape(4, n, h * w), dark, None, gain)  # compiled beside the I/Q programs
         out = dispatcher.dispatch(frames.reshape(4, n, h * w), dark, None, gain).gather()
     return {k: v.reshape(h, w) for k, v in out.items()}
 
@@ -148,7 +149,8 @@ class TileSource:
     the per-pixel dark and gain maps, each padded to the tile shape (one compiled shape)."""
 
     def __init__(self, capture: Capture, maps: PixelMaps, registration_maps, rows: int):
-        _, self.h, self.w = capture.shape
+        self.num_frames, self.h, self.w = capture.shape
+        self.frames_dtype = capture.frames.dtype
         self.rows = rows
         self.dark, self.gain = maps.offset_dn, maps.gain
         self.registered = self.reader = None
@@ -180,6 +182,16 @@ class TileSource:
         """Whether the last tile's frames are still in use (`BlockReader.hold_last`)."""
         if self.reader is not None:
             self.reader.hold_last(held)
+
+    def tile_like(self) -> tuple:
+        """(frames (4, N, P), dark (4, P), data status (P,), gain (4, P)) of every tile as
+        `jax.ShapeDtypeStruct`s (None where tiles have none), in `TileDispatcher.dispatch`'s
+        order: what `inputs` gives, known before any tile is read."""
+        p, like = self.rows * self.w, jax.ShapeDtypeStruct
+        registered = self.registered is not None  # resampled: float32, with an upstream status
+        frames = like((4, self.num_frames, p), np.float32 if registered else self.frames_dtype)
+        dark, gain = (None if m is None else like((4, p), np.float32) for m in (self.dark, self.gain))
+        return frames, dark, like((p,), np.int8) if registered else None, gain
 
     def inputs(self, r0: int) -> tuple:
         """(r1, frames (4, N, P) or its `TilePieces`, data status (P,) or None, dark (4, P), gain (4, P))
@@ -254,25 +266,32 @@ def reconstruct_capture(
             band[r0 - band_start : r1 - band_start] = arr
         bar.update((r1 - r0) * w)
 
-    # the first tile is read before the plan is made: "auto" carrier alignment looks at it.
-    # Its survey (NumPy) runs in a thread while the first tile is dispatched as if static,
-    # which "auto" finds in most captures; where it finds a drift, the tile is dispatched
-    # again with it, before the next tile is read over its buffer
-    first = source.inputs(band_start)
-    survey = None
-    if alignment is None and options.carrier == "auto":
-        pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="carrier-survey")
-        survey = pool.submit(align_carrier, options, instrument, first[1], first[3], first[4])
-        pool.shutdown(wait=False)  # its thread ends with the survey
-        alignment = choose_carrier_alignment("static")
-    elif alignment is None:
-        alignment = align_carrier(options, instrument, first[1], first[3], first[4])
+    # "auto" carrier alignment looks at the first tile: its survey (NumPy) runs in a thread
+    # while the first tile is dispatched as if static, which "auto" finds in most captures;
+    # where it finds a drift, the tile is dispatched again with it, before the next tile is
+    # read over its buffer
+    auto = alignment is None and options.carrier == "auto"
+    # where this process's programs are being loaded (a warm cache) the first tile is read
+    # beside the loads, at once; where they are compiled, the plan is made first and the
+    # inversion's compile started (`TileDispatcher.prepare`), and the tile read beside it
+    first = source.inputs(band_start) if EXECUTABLES.loading() else None
+    if alignment is None:
+        alignment = choose_carrier_alignment("static" if auto else options.carrier)
     sub_px = source.sub_tile_pixels(n)
     plan, dispatcher = plan_and_dispatcher(instrument, options, saturation, alignment, sub_px)
     total = (band_end - band_start) * w
     bar = progress_bar(total=total, unit="px", desc="reconstruct", disable=not options.progress, unit_scale=True)
     # the whole capture's size decides, so that every band of a distributed run decides alike
     with bar, quick_compile(h * w <= QUICK_COMPILE_MAX_PIXELS):
+        # the inversion program compiled in a thread while the first tile is read and its I/Q
+        # programs compile: on a cold cache its compile is most of the run
+        dispatcher.prepare(*source.tile_like())
+        first = first or source.inputs(band_start)
+        survey = None
+        if auto:
+            pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="carrier-survey")
+            survey = pool.submit(align_carrier, options, instrument, first[1], first[3], first[4])
+            pool.shutdown(wait=False)  # its thread ends with the survey
         pending = None
         for r0 in range(band_start, band_end, rows):
             r1, block, data_status, d, g = first if r0 == band_start else source.inputs(r0)

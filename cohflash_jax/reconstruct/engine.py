@@ -11,6 +11,8 @@ Measured sizes and timings: docs/performance.md.
 
 from __future__ import annotations
 
+import concurrent.futures
+import contextvars
 import dataclasses
 import math
 
@@ -20,9 +22,9 @@ import numpy as np
 
 from ..capture import Capture
 from ..process import take_prefaulted
-from ..runtime import QUICK_COMPILE_MAX_PIXELS, place_on_devices, stream_devices
+from ..runtime import EXECUTABLES, QUICK_COMPILE_MAX_PIXELS, place_on_devices, stream_devices
 from .plan import TilePlan, program_plan
-from .programs import inversion_plan, process_stages
+from .programs import inversion_plan, prepare_stages, process_stages
 
 # CPU: the uint16 frames of a sub-tile (4·N·2 bytes a pixel) fit in ~12 MiB, so its I/Q,
 # moment and FFT passes run from cache; a tile gives at least `MIN_PIECES` sub-tiles to overlap
@@ -124,6 +126,48 @@ class TileDispatcher:
             zeros = np.zeros(pixels, np.int8)
             self.no_status[pixels, device] = jax.device_put(zeros, device) if device is not None else jnp.asarray(zeros)
         return self.no_status[pixels, device]
+
+    def prepare(self, frames, dark=None, data_status=None, gain=None) -> concurrent.futures.Future | None:
+        """Start getting, in a thread, the inversion program each stream device will run on
+        the sub-tiles of a tile like this one (as `dispatch` takes it, or its
+        `jax.ShapeDtypeStruct`s), loaded or compiled (`programs.prepare_stages`). On a cold
+        cache its compile, most of a first run's, then overlaps the first read and the I/Q
+        programs' compiles instead of following them. The caller's `quick_compile` setting
+        holds in the thread. Returns the thread's future; None where the executable cache is
+        loading this process's programs already (`ExecutableCache.loading`): nothing to gain."""
+        if EXECUTABLES.loading():
+            return None
+        p = frames.num_pixels if isinstance(frames, TilePieces) else frames.shape[-1]
+        sub = self.sub_px or p
+        # the devices `dispatch` deals this tile's sub-tiles to
+        devices = self.devices[: -(-p // sub)] if len(self.devices) > 1 else [jax.devices()[0]]
+
+        def like(arr, device):
+            """A sub-tile of `arr` as `dispatch` places it, as shape, type and device."""
+            if arr is None:
+                return None
+            piece = arr.pieces[0] if isinstance(arr, TilePieces) else arr
+            shape = piece.shape[:-1] + (sub,)
+            return jax.ShapeDtypeStruct(shape, piece.dtype, sharding=jax.sharding.SingleDeviceSharding(device))
+
+        def prepare_all():
+            for k, device in enumerate(devices):
+                stage, plan, carrier = self.placed[k % len(self.placed)]
+                status = self.zero_status(sub, device if len(self.devices) > 1 else None)
+                prepare_stages(
+                    stage,
+                    plan,
+                    like(frames, device),
+                    like(dark, device),
+                    status if data_status is None else like(data_status, device),
+                    like(gain, device),
+                    carrier,
+                )
+
+        pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="prepare-programs")
+        future = pool.submit(contextvars.copy_context().run, prepare_all)
+        pool.shutdown(wait=False)  # its thread ends with the preparation
+        return future
 
     def dispatch(self, frames, dark=None, data_status=None, gain=None) -> PendingTile:
         """Dispatch a tile (4, N, P), or read as its sub-tiles (`TilePieces` of `sub_px`), with
