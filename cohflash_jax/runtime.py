@@ -169,22 +169,37 @@ def async_filter_jit(fun=None, *, loop_emitters: bool = False):
         static_leaves = tuple(x for x, m in zip(leaves, mask) if not m)
         return arrays, static_leaves, mask, treedef
 
-    def get_program(arrays, static_leaves, mask, treedef, quick):
-        """The program for these arrays (compiled, loaded, or waited for where `prepare` is
-        getting it in another thread)."""
+    def get_program(arrays, static_leaves, mask, treedef, quick, wait: bool = True):
+        """The program for these arrays: compiled, loaded, or (`wait`) waited for where another
+        thread is getting it; None where another thread is and `wait` is False. A thread that
+        gets a program holds a future of it in `programs` meanwhile, so that of the threads
+        asking for one program (a call and a `prepare`), one compiles or loads it."""
         signature = tuple(map(_argument_signature, arrays))
         key = (static_leaves, mask, treedef, signature, quick)
         program = programs.get(key)
-        if isinstance(program, concurrent.futures.Future):
+        if program is not None and not isinstance(program, concurrent.futures.Future):
+            return program
+        pending = concurrent.futures.Future()
+        found = programs.setdefault(key, pending)
+        if found is not pending:
+            if not isinstance(found, concurrent.futures.Future):
+                return found
+            if not wait:
+                return None
             try:
-                program = programs[key] = program.result()
-            except Exception:  # the preparation failed: got here as if never prepared
-                programs.pop(key, None)
-                program = None
-        if program is None:
+                return found.result()
+            except Exception:  # that thread failed: got here afresh
+                return get_program(arrays, static_leaves, mask, treedef, quick)
+        try:
             flat = flat_fun(static_leaves, mask, treedef)
             parts = ((static_leaves, mask), treedef, signature)
-            program = programs[key] = EXECUTABLES.program(fun, flat, parts, arrays, quick, loop_emitters)
+            program = EXECUTABLES.program(fun, flat, parts, arrays, quick, loop_emitters)
+        except BaseException as exc:
+            programs.pop(key, None)
+            pending.set_exception(exc)
+            raise
+        programs[key] = program
+        pending.set_result(program)
         return program
 
     @functools.wraps(fun)
@@ -200,24 +215,11 @@ def async_filter_jit(fun=None, *, loop_emitters: bool = False):
         executable cache or compiled), without running it: arrays may be given as
         `jax.ShapeDtypeStruct`s with their sharding. Meant for another thread than the caller's
         (`reconstruct.engine.TileDispatcher.prepare`): a call for the same program made
-        meanwhile waits for it rather than compiling it a second time."""
+        meanwhile waits for it rather than compiling it a second time, and a program another
+        thread is getting already is left to it."""
         like_array = lambda x: eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
         arrays, static_leaves, mask, treedef = split(args, kwargs, like_array)
-        quick = _QUICK_COMPILE.get()
-        key = (static_leaves, mask, treedef, tuple(map(_argument_signature, arrays)), quick)
-        pending = concurrent.futures.Future()
-        if programs.setdefault(key, pending) is not pending:  # got, or being got, already
-            return
-        try:
-            flat = flat_fun(static_leaves, mask, treedef)
-            parts = ((static_leaves, mask), treedef, key[3])
-            program = EXECUTABLES.program(fun, flat, parts, arrays, quick, loop_emitters)
-        except BaseException as exc:
-            programs.pop(key, None)
-            pending.set_exception(exc)
-            raise
-        programs[key] = program
-        pending.set_result(program)
+        get_program(arrays, static_leaves, mask, treedef, _QUICK_COMPILE.get(), wait=False)
 
     call.prepare = prepare
     return call
@@ -499,11 +501,13 @@ class ExecutableCache:
         wanted = [(p, d) for p, d in dict.fromkeys(wanted) if p.exists() and (p, d) not in self.prefetched]
         if not wanted:
             return False
-        pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="executable-prefetch")
         # each onto its device by name: left to the entry, an executable loads for every local
-        # device where there are several (two CPU streams) and refuses one device's arguments
-        self.prefetched.update({(p, d): pool.submit(self._deserialize, p, [d]) for p, d in wanted})
-        pool.shutdown(wait=False)  # its thread ends with the last load
+        # device where there are several (two CPU streams) and refuses one device's arguments.
+        # A thread a device: the first sub-tiles of a tile go to every device at once
+        for device in dict.fromkeys(d for _, d in wanted):
+            pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="executable-prefetch")
+            self.prefetched.update({(p, d): pool.submit(self._deserialize, p, [d]) for p, d in wanted if d == device})
+            pool.shutdown(wait=False)  # its thread ends with its last load
         return True
 
     def loading(self) -> bool:

@@ -433,11 +433,12 @@ def test_an_option_this_xla_does_not_know_is_left_out_not_the_compile():
         runtime.compile_lowered(lowered, {"xla_backend_optimization_level": "not a level"})
 
 
-def test_a_program_prepared_in_a_thread_is_compiled_once_and_a_call_meanwhile_waits(tmp_path, monkeypatch):
+def test_a_program_prepared_in_a_thread_is_got_once_and_a_call_meanwhile_waits(tmp_path, monkeypatch):
     """`prepare` gets a program from its arguments' shapes (`jax.ShapeDtypeStruct`s placed on
     a device) in another thread; a call made while it compiles waits for that compile instead
-    of compiling the program again, and runs it. A preparation that fails leaves the call to
-    compile the program itself."""
+    of compiling the program again, and runs it; a preparation made while a call compiles
+    leaves the program to the call (it neither compiles nor loads it). A preparation that
+    fails leaves the call to compile the program itself."""
     import threading
 
     import jax
@@ -472,9 +473,18 @@ def test_a_program_prepared_in_a_thread_is_compiled_once_and_a_call_meanwhile_wa
     np.testing.assert_allclose(np.asarray(out), np.cumsum(np.sin(np.asarray(x)) * 2.0), rtol=1e-12)
     scaled_sums.prepare(like, 2.0)  # already there: nothing to do
     assert compiled_in == ["preparing"]
+    # the other way round: a preparation made while a call compiles leaves the program to it
+    started.clear()
+    loaded = runtime.EXECUTABLES.loaded
+    thread = threading.Thread(target=scaled_sums, args=(x, 4.0), name="calling")
+    thread.start()
+    assert started.wait(60)
+    scaled_sums.prepare(like, 4.0)
+    thread.join()
+    assert compiled_in == ["preparing", "calling"] and runtime.EXECUTABLES.loaded == loaded
 
     monkeypatch.setattr(runtime, "compile_lowered", compile_now)
-    get_program = runtime.EXECUTABLES.program
+    get_program, asked = runtime.EXECUTABLES.program, len(compiled_in)
 
     def failing_get(*args, **kwargs):
         compiled_in.append(threading.current_thread().name)
@@ -492,7 +502,7 @@ def test_a_program_prepared_in_a_thread_is_compiled_once_and_a_call_meanwhile_wa
     thread.join()
     assert raised  # the preparation raised in its thread
     np.testing.assert_allclose(np.asarray(scaled_sums(jnp.ones(7), 3.0)), 3 * np.sin(1.0) * np.arange(1, 8))
-    assert compiled_in[1:] == ["failing", "MainThread"]
+    assert compiled_in[asked:] == ["failing", "MainThread"]
 
 
 def test_a_dispatcher_prepares_the_inversion_a_tile_of_a_long_sweep_runs(tmp_path, monkeypatch):
