@@ -117,6 +117,7 @@ class TileDispatcher:
         plan = program_plan(plan)
         self.placed = place_on_devices((plan.iq, inversion_plan(plan), carrier), self.devices)
         self.no_status = {}  # (pixels, device) → placed zeros: "no upstream status"
+        self.prepared = set()  # the kinds of tile `prepare` was asked for
 
     def zero_status(self, pixels: int, device):
         """A sub-tile's upstream status where there is none (all 0: nothing found upstream),
@@ -133,10 +134,13 @@ class TileDispatcher:
         `jax.ShapeDtypeStruct`s), loaded or compiled (`programs.prepare_stages`). On a cold
         cache its compile, most of a first run's, then overlaps the first read and the I/Q
         programs' compiles instead of following them. The caller's `quick_compile` setting
-        holds in the thread. Returns the thread's future; None where the executable cache is
-        loading this process's programs already (`ExecutableCache.loading`): nothing to gain."""
-        if EXECUTABLES.loading():
+        holds in the thread. Returns the thread's future; None where tiles of this kind were
+        prepared before (a stream of captures prepares once) or the executable cache is loading
+        this process's programs already (`ExecutableCache.loading`): nothing to gain."""
+        kind = tuple(None if a is None else shape_and_type(a) for a in (frames, dark, data_status, gain))
+        if kind in self.prepared or EXECUTABLES.loading():
             return None
+        self.prepared.add(kind)
         p = frames.num_pixels if isinstance(frames, TilePieces) else frames.shape[-1]
         sub = self.sub_px or p
         # the devices `dispatch` deals this tile's sub-tiles to
@@ -146,9 +150,8 @@ class TileDispatcher:
             """A sub-tile of `arr` as `dispatch` places it, as shape, type and device."""
             if arr is None:
                 return None
-            piece = arr.pieces[0] if isinstance(arr, TilePieces) else arr
-            shape = piece.shape[:-1] + (sub,)
-            return jax.ShapeDtypeStruct(shape, piece.dtype, sharding=jax.sharding.SingleDeviceSharding(device))
+            shape, dtype = shape_and_type(arr)
+            return jax.ShapeDtypeStruct(shape[:-1] + (sub,), dtype, sharding=jax.sharding.SingleDeviceSharding(device))
 
         def prepare_all():
             for k, device in enumerate(devices):
@@ -223,6 +226,13 @@ class TilePieces:
     @property
     def num_pixels(self) -> int:
         return len(self.pieces) * self.pieces[0].shape[-1]
+
+
+def shape_and_type(arr) -> tuple:
+    """(shape, dtype) of an input as `TileDispatcher.dispatch` cuts it (a `TilePieces` by its
+    pieces; an array, or its `jax.ShapeDtypeStruct`, whole)."""
+    piece = arr.pieces[0] if isinstance(arr, TilePieces) else arr
+    return piece.shape, np.dtype(piece.dtype)
 
 
 def piece_rows(rows: int, num_frames: int, width: int) -> int | None:
