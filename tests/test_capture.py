@@ -199,6 +199,42 @@ def test_a_region_of_interest_is_read_whole_a_larger_capture_in_pieces(tmp_path)
         assert reader is not None and reader.sub == sub_tile_pixels(32 * 48, 3000) == 384
 
 
+def test_a_tile_source_states_its_tiles_before_reading_them(tmp_path):
+    """`TileSource.tile_like`, from which a first run compiles its inversion before any tile is
+    read (`TileDispatcher.prepare`), states what `inputs` then gives: the frames' pixels, shape
+    and type, the dark and gain maps and the upstream status, for a capture read in pieces, one
+    read whole with per-pixel maps, and a registered one (resampled float32 frames, a status)."""
+    from cohflash_jax.calibration_file import PixelMaps
+    from cohflash_jax.reconstruct.api import TileSource
+    from cohflash_jax.reconstruct.engine import TilePieces
+
+    def described(x):  # pixels, the rest of the shape, type
+        if x is None:
+            return None
+        if isinstance(x, TilePieces):
+            return x.num_pixels, x.pieces[0].shape[:-1], x.pieces[0].dtype
+        return x.shape[-1], x.shape[:-1], np.dtype(x.dtype)
+
+    def stated_and_read(path, maps, registration_maps=None):
+        with Capture(path) as cap:
+            source = TileSource(cap, maps, registration_maps, cap.shape[1])
+            _, frames, status, dark, gain = source.inputs(0)
+            pieces.append(isinstance(frames, TilePieces))
+            return [described(x) for x in source.tile_like()], [described(x) for x in (frames, dark, status, gain)]
+
+    rng, pieces = np.random.default_rng(4), []
+    large = _chunked(tmp_path / "l.h5", rng.integers(0, 99, (4, 64, 32, 48), np.uint16), chunks=(1, 8, 32, 48))
+    stated, read = stated_and_read(large, PixelMaps())
+    assert stated == read and read[0][0] == 32 * 48 and pieces == [jax.default_backend() == "cpu"]
+    small = _chunked(tmp_path / "s.h5", rng.integers(0, 99, (4, 64, 6, 5), np.uint16), chunks=(1, 8, 6, 5))
+    maps = PixelMaps(rng.normal(100, 1, (4, 6, 5)), rng.normal(1, 0.01, (4, 6, 5)))
+    stated, read = stated_and_read(small, maps)
+    assert stated == read and read[1] == (30, (4,), np.float32) and read[3] == read[1]
+    rows, cols = np.mgrid[0:6, 0:5].astype(np.float64)
+    stated, read = stated_and_read(small, PixelMaps(), [(cols + 0.25, rows)] * 3)
+    assert stated == read and read[0][2] == np.float32 and read[2] == (30, (), np.int8)
+
+
 def test_a_capture_truncated_after_it_was_opened_fails_naming_the_rows(tmp_path):
     frames = np.random.default_rng(7).integers(0, 2**16, (4, 10, 16, 7), dtype=np.uint16)
     path = _chunked(tmp_path / "c.h5", frames, chunks=(1, 4, 8, 7))
