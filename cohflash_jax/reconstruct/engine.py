@@ -128,6 +128,19 @@ class TileDispatcher:
             self.no_status[pixels, device] = jax.device_put(zeros, device) if device is not None else jnp.asarray(zeros)
         return self.no_status[pixels, device]
 
+    def cut(self, frames) -> tuple[int, int]:
+        """(pixels, pixels a sub-tile) of a tile (4, N, P), its `TilePieces` or its
+        `jax.ShapeDtypeStruct`, as `dispatch` cuts it (a sub-tile larger than the tile pads it:
+        `pixel_bucket`)."""
+        p = frames.num_pixels if isinstance(frames, TilePieces) else frames.shape[-1]
+        return p, self.sub_px or p
+
+    def stream(self, k: int) -> tuple:
+        """Where sub-tile k runs: (its device, None on a single stream; the I/Q stage, inversion
+        plan and carrier drift placed there)."""
+        device = self.devices[k % len(self.devices)] if len(self.devices) > 1 else None
+        return device, self.placed[k % len(self.placed)]
+
     def prepare(self, frames, dark=None, data_status=None, gain=None) -> concurrent.futures.Future | None:
         """Start getting, in a thread, the inversion program each stream device will run on
         the sub-tiles of a tile like this one (as `dispatch` takes it, or its
@@ -141,28 +154,26 @@ class TileDispatcher:
         if kind in self.prepared or EXECUTABLES.loading():
             return None
         self.prepared.add(kind)
-        p = frames.num_pixels if isinstance(frames, TilePieces) else frames.shape[-1]
-        sub = self.sub_px or p
-        # the devices `dispatch` deals this tile's sub-tiles to
-        devices = self.devices[: -(-p // sub)] if len(self.devices) > 1 else [jax.devices()[0]]
+        p, sub = self.cut(frames)
 
         def like(arr, device):
             """A sub-tile of `arr` as `dispatch` places it, as shape, type and device."""
             if arr is None:
                 return None
             shape, dtype = shape_and_type(arr)
-            return jax.ShapeDtypeStruct(shape[:-1] + (sub,), dtype, sharding=jax.sharding.SingleDeviceSharding(device))
+            placed = jax.sharding.SingleDeviceSharding(jax.devices()[0] if device is None else device)
+            return jax.ShapeDtypeStruct(shape[:-1] + (sub,), dtype, sharding=placed)
 
         def prepare_all():
-            for k, device in enumerate(devices):
-                stage, plan, carrier = self.placed[k % len(self.placed)]
-                status = self.zero_status(sub, device if len(self.devices) > 1 else None)
+            # the first sub-tile each device runs (as many devices as the tile has sub-tiles)
+            for k in range(min(len(self.devices), -(-p // sub))):
+                device, (stage, plan, carrier) = self.stream(k)
                 prepare_stages(
                     stage,
                     plan,
                     like(frames, device),
                     like(dark, device),
-                    status if data_status is None else like(data_status, device),
+                    self.zero_status(sub, device) if data_status is None else like(data_status, device),
                     like(gain, device),
                     carrier,
                 )
@@ -175,8 +186,7 @@ class TileDispatcher:
     def dispatch(self, frames, dark=None, data_status=None, gain=None) -> PendingTile:
         """Dispatch a tile (4, N, P), or read as its sub-tiles (`TilePieces` of `sub_px`), with
         its per-pixel maps (4, P) and upstream status (P,)."""
-        p = frames.num_pixels if isinstance(frames, TilePieces) else frames.shape[-1]
-        sub = self.sub_px or p  # a sub-tile larger than the tile pads it (`pixel_bucket`)
+        p, sub = self.cut(frames)
         several = len(self.devices) > 1
 
         def piece(arr, k, device):
@@ -195,8 +205,7 @@ class TileDispatcher:
         parts = []
         pieces = -(-p // sub)
         for k in range(pieces):
-            device = self.devices[k % len(self.devices)] if several else None
-            stage, plan, carrier = self.placed[k % len(self.placed)]
+            device, (stage, plan, carrier) = self.stream(k)
             parts.append(
                 process_stages(
                     stage,
@@ -251,7 +260,33 @@ def piece_rows(rows: int, num_frames: int, width: int) -> int | None:
     return fits[-1] if fits and 2 * fits[-1] * width >= sub and fits[-1] < rows else None
 
 
-class PieceReader:
+class TileBuffers:
+    """Reused buffers that row tiles are read into, at most two: a tile whose buffer is still
+    aliased by dispatched work (`hold_last`) keeps it, and the next tile goes into the other
+    (the caller gathers tile k before reading tile k + 2). A reader makes a buffer with its
+    `new_buffer` (appending it to `buffers`; None where it cannot: a `PieceReader` whose
+    capture cannot be scattered into it)."""
+
+    def __init__(self):
+        self.buffers = []
+        self.last = self.held = None
+
+    def hold_last(self, held: bool) -> None:
+        """Whether the last tile read is still in use (its buffer not to be read into next)."""
+        self.held = self.last if held else None
+
+    def free_buffer(self):
+        """A buffer not held, made where there is none, for the next tile (then the last one)."""
+        free = [k for k in range(len(self.buffers)) if k != self.held]
+        if not free:
+            if self.new_buffer() is None:
+                raise RuntimeError(f"{self.capture.path}: no buffer for its next tile could be made")
+            free = [len(self.buffers) - 1]
+        self.last = free[0]
+        return self.buffers[self.last]
+
+
+class PieceReader(TileBuffers):
     """Row tiles of a capture read straight into their sub-tiles of `rows_per_piece` whole rows
     (`Capture.read_tile_into_pieces`): each chunk scattered by one `preadv` to the pieces its
     rows belong to, so no piece is copied out of a tile buffer before it is dispatched (a
@@ -261,6 +296,7 @@ class PieceReader:
     not stored for it (`Capture.scatter_tables`)."""
 
     def __init__(self, capture: Capture, rows: int, rows_per_piece: int):
+        super().__init__()  # (TilePieces, scatter tables) a buffer
         n, h, w = capture.shape
         self.capture, self.rows, self.h, self.rows_per_piece = capture, rows, h, rows_per_piece
         self.dtype = capture.frames.dtype
@@ -268,8 +304,6 @@ class PieceReader:
         self.piece_shape = (4, n, self.sub)
         nbytes = math.prod(self.piece_shape) * self.dtype.itemsize
         self.stride = -(-nbytes // BUFFER_ALIGNMENT_BYTES) * BUFFER_ALIGNMENT_BYTES
-        self.buffers = []  # (TilePieces, scatter tables), made as needed: at most two
-        self.last = self.held = None
 
     @classmethod
     def of(cls, capture: Capture, rows: int) -> PieceReader | None:
@@ -306,19 +340,9 @@ class PieceReader:
         self.buffers.append((TilePieces(pieces, frames), tables))
         return self.buffers[-1]
 
-    def hold_last(self, held: bool) -> None:
-        """Whether the last tile read is still in use (its buffer not to be read into next)."""
-        self.held = self.last if held else None
-
     def read(self, r0: int) -> TilePieces:
         r1 = min(self.h, r0 + self.rows)
-        free = [k for k in range(len(self.buffers)) if k != self.held]
-        if not free:
-            if self.new_buffer() is None:
-                raise RuntimeError(f"{self.capture.path}: its frames cannot be read straight into sub-tiles")
-            free = [len(self.buffers) - 1]
-        self.last = free[0]
-        tile, tables = self.buffers[self.last]
+        tile, tables = self.free_buffer()
         if r1 - r0 < self.rows:  # pad the last tile so every tile has one compiled shape
             rows_read = (r1 - r0) * self.sub // self.rows_per_piece
             for k, piece in enumerate(tile.pieces):
@@ -327,7 +351,7 @@ class PieceReader:
         return tile
 
 
-class BlockReader:
+class BlockReader(TileBuffers):
     """Row tiles of a capture read into reused buffers: allocating a fresh ~250 MB array per
     tile costs more than the read itself on a cold machine (first touch of its memory).
 
@@ -338,24 +362,18 @@ class BlockReader:
     (the caller gathers tile k before reading tile k + 2)."""
 
     def __init__(self, capture: Capture, rows: int):
+        super().__init__()
         n, h, w = capture.shape
         self.capture, self.rows, self.h = capture, rows, h
         self.shape, self.dtype = (4, n, rows, w), capture.frames.dtype
-        self.buffers = []  # made as needed: at most two
-        self.last = self.held = None
 
-    def hold_last(self, held: bool) -> None:
-        """Whether the last tile read is still in use (its buffer not to be read into next)."""
-        self.held = self.last if held else None
+    def new_buffer(self) -> np.ndarray:
+        self.buffers.append(tile_buffer(self.shape, self.dtype))
+        return self.buffers[-1]
 
     def read(self, r0: int) -> np.ndarray:
         r1 = min(self.h, r0 + self.rows)
-        free = [k for k in range(len(self.buffers)) if k != self.held]
-        if not free:
-            self.buffers.append(tile_buffer(self.shape, self.dtype))
-            free = [len(self.buffers) - 1]
-        self.last = free[0]
-        buf = self.buffers[self.last]
+        buf = self.free_buffer()
         if r1 - r0 < self.rows:
             buf[:, :, r1 - r0 :] = 0  # pad the last tile so every tile has one compiled shape
         self.capture.read_tile_into(buf, slice(r0, r1))

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 from ..estimate.base import estimate_detected
 from ..estimate.iq import carrier_axis, derotate, iq_from_frames, rotate_onto_axis, track_carrier_drift
 from ..fisher import reported_sigma_m
-from ..runtime import async_filter_jit, xla_cpu_has_avx512
+from ..runtime import async_filter_jit, first_device, xla_cpu_has_avx512
 from .plan import IQStage, TilePlan
 from .policy import MAX_FIT_EXCURSION_BINS, classify
 
@@ -66,8 +66,7 @@ def prepare_stages(stage: IQStage, plan: TilePlan, frames, dark, data_status=Non
     inversion's compile is most of a cold run's (2.4 s of a full capture's 3.4 s), so a
     dispatcher starts it in a thread while the first tile is read and the I/Q programs
     compile (`engine.TileDispatcher.prepare`)."""
-    device = next(d for x in jax.tree.leaves((frames, dark, data_status, gain)) for d in x.sharding.device_set)
-    sharding = jax.sharding.SingleDeviceSharding(device)
+    sharding = jax.sharding.SingleDeviceSharding(first_device(jax.tree.leaves((frames, dark, data_status, gain))))
 
     def run(program, *arguments):
         if program in (invert_sequence, rotate_and_invert):
