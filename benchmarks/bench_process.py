@@ -30,6 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from cohflash_jax.process import allocator_description
 from cohflash_jax.runtime import cpu_description
 
 READ_ONCE = """
@@ -138,6 +139,7 @@ def run(args, folder: Path):
         f"\n{cpu_description()}; JAX {jax.__version__}, jaxlib {jaxlib.__version__}; Python {platform.python_version()}"
     )
     print(f"JAX device: {jax.devices()[0].device_kind} ({jax.default_backend()})")
+    print(allocator_description())
     print(f"capture {capture}; {args.rounds} interleaved rounds, medians; whole processes")
     print(f"{'what':48s} {'seconds':>8s} {'× floor':>8s} {'NumPy ÷ it':>10s}")
     for name, values in rows.items():

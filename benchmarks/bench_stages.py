@@ -34,6 +34,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from cohflash_jax.process import allocator_description, allocator_environment
 from cohflash_jax.runtime import cpu_description
 
 WHOLE = r"""
@@ -154,10 +155,12 @@ def main():
     import jaxlib
 
     print(f"{cpu_description()}; JAX {jax.__version__}, jaxlib {jaxlib.__version__}; capture {args.capture}")
+    print(allocator_description())
     with tempfile.TemporaryDirectory(prefix="cohflash-bench-stages-") as tmp:
         tmp = Path(tmp)
         cache = tmp / "cache"
-        env = {**os.environ, "COHFLASH_JAX_CACHE": str(cache)}
+        # the children imitate a `cohflash reconstruct` process, on the allocator it would run on
+        env = {**(allocator_environment() or os.environ), "COHFLASH_JAX_CACHE": str(cache)}
         out = str(tmp / "d.h5")
         child(WHOLE, args.capture, out, args.method, env)  # fills the cache
         wholes, steadies = [], []

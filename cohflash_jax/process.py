@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import gc
 import os
+import platform
+import sys
 
 _PAUSED = False  # garbage collection paused by `pause_garbage_collection_for_cli`
 _PREFAULTED: dict = {}  # the thread mapping host memory for `take_prefaulted`, then its mapping
@@ -47,6 +49,102 @@ def cli_input_bytes(argv) -> int | None:
         except (OSError, ValueError):
             continue
     return max(sizes, default=None)
+
+
+# The allocator a `cohflash` command runs on where the system has it (`preload_allocator_for_cli`),
+# as the dynamic loader names it, in the folders Linux distributions install it to
+ALLOCATOR_LIBRARIES = ("libmimalloc.so.2", "libmimalloc.so.3", "libmimalloc.so")
+ALLOCATOR_FOLDERS = (
+    "/usr/lib/{machine}-linux-gnu",
+    "/lib/{machine}-linux-gnu",
+    "/usr/lib64",
+    "/usr/lib",
+    "/usr/local/lib",
+)
+# Set to "system" to keep the C library's allocator
+ALLOCATOR_ENV = "COHFLASH_ALLOCATOR"
+# The commands that run on it: measured faster there (a first run's compile); `simulate` and
+# `stream` ran slower (mimalloc hands their large buffers back to the system between chunks,
+# and they are faulted in again)
+ALLOCATOR_COMMANDS = ("reconstruct",)
+
+
+def allocator_library() -> str | None:
+    """The path of mimalloc's shared library where it is installed (Debian and Ubuntu:
+    `libmimalloc2.0`), else None. Looked for by name in the usual library folders: asking the
+    loader's cache (`ctypes.util.find_library`) starts subprocesses, slower than the lookups."""
+    machine = platform.machine()
+    for folder in ALLOCATOR_FOLDERS:
+        for name in ALLOCATOR_LIBRARIES:
+            path = os.path.join(folder.format(machine=machine), name)
+            if os.path.isfile(path):
+                return path
+    return None
+
+
+def preload_allocator_for_cli(argv) -> bool:
+    """Where this interpreter runs a command of `ALLOCATOR_COMMANDS` on Linux and mimalloc is
+    installed (`allocator_library`), run the command again, at once, in this process
+    (`os.execve`) with mimalloc preloaded (`LD_PRELOAD`) in place of the C library's allocator,
+    unless it is preloaded already or `COHFLASH_ALLOCATOR=system` asks for the C library's.
+
+    XLA builds and frees many small objects as it compiles a program and as it loads a compiled
+    one; glibc's `malloc` and `free` were ~30 % of a load. On mimalloc a first (cold)
+    full-capture `cohflash reconstruct` took ~12 % less, a warm one the same, the depth files
+    identical (docs/performance.md). Only a preload replaces the allocator of the libraries
+    already loaded (Python's own among them), hence the new start (~15 ms): the package calls
+    this first, before any import or thread of its own. A library user's process, a test run or
+    a Dask worker (not a command), and a script that imitates a command (`started_as`), keep
+    their allocator. Returns False where nothing is done (or the new start failed); a new start
+    does not return."""
+    if cli_command(argv) not in ALLOCATOR_COMMANDS or not sys.platform.startswith("linux") or not started_as(argv):
+        return False
+    env = allocator_environment()
+    if env is None:
+        return False
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.execve(sys.executable, list(argv), env)
+    except OSError:  # e.g. the interpreter cannot be run again: the command runs on as it is
+        return False
+    return True  # not reached
+
+
+def allocator_environment(environ=None) -> dict | None:
+    """`environ` (default: this process's) with mimalloc added to LD_PRELOAD, as a `cohflash`
+    command's process runs (`preload_allocator_for_cli`); None where it runs as `environ` says
+    already: mimalloc is not installed, is preloaded already, or `COHFLASH_ALLOCATOR=system`."""
+    environ = os.environ if environ is None else environ
+    if environ.get(ALLOCATOR_ENV, "mimalloc").lower() != "mimalloc":
+        return None
+    library = allocator_library()
+    preloaded = environ.get("LD_PRELOAD", "")
+    if library is None or os.path.basename(library) in preloaded:
+        return None
+    return dict(environ, LD_PRELOAD=f"{library}:{preloaded}" if preloaded else library)
+
+
+def allocator_description() -> str:
+    """The allocator `cohflash` commands run on here, as benchmarks print it."""
+    if os.environ.get(ALLOCATOR_ENV, "mimalloc").lower() != "mimalloc":
+        return f"allocator: the C library's ({ALLOCATOR_ENV}={os.environ[ALLOCATOR_ENV]})"
+    library = allocator_library()
+    if library is None or not sys.platform.startswith("linux"):
+        return "allocator: the C library's (mimalloc is not installed)"
+    return f"allocator: mimalloc ({library}), preloaded into `cohflash {'`, `'.join(ALLOCATOR_COMMANDS)}`"
+
+
+def started_as(argv) -> bool:
+    """Whether this interpreter was started with the command line `argv` (Linux: its
+    /proc/self/cmdline). A script that sets `sys.orig_argv` to look like a command (a test, a
+    benchmark) then runs as itself, not started again as the command it imitates."""
+    try:
+        with open("/proc/self/cmdline", "rb") as f:
+            started = [os.fsdecode(a) for a in f.read().split(b"\0")[:-1]]
+    except OSError:
+        return False
+    return started == list(argv)
 
 
 def gpu_memory_on_demand_for_cli(argv) -> bool:

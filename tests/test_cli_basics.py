@@ -451,6 +451,80 @@ def test_a_cohflash_process_takes_gpu_memory_on_demand_unless_told_otherwise(mon
     assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "true"
 
 
+def test_a_cohflash_process_starts_again_on_mimalloc_where_it_is_installed(monkeypatch, tmp_path):
+    """A `cohflash reconstruct` interpreter runs itself again (`os.execve`, the same command line)
+    with mimalloc preloaded, where the library is installed: once (not where LD_PRELOAD names it
+    already), not where `COHFLASH_ALLOCATOR=system` asks for the C library's allocator, and
+    never for a library user's or a test run's process, nor for a script that only sets
+    `sys.orig_argv` to look like a command; a failed new start lets the command run on. Where
+    mimalloc is installed, a real command's process has it mapped, and its output is the same."""
+    from cohflash_jax import process
+
+    started = []
+    monkeypatch.setattr(process.os, "execve", lambda *args: started.append(args))
+    assert not process.started_as(["python", "-m", "cohflash_jax.cli", "reconstruct", "c.h5"])
+    assert process.started_as(sys.orig_argv)  # this test run's own command line
+    monkeypatch.setattr(process, "started_as", lambda argv: True)
+    library = tmp_path / "libmimalloc.so.2"
+    library.write_bytes(b"")
+    monkeypatch.setattr(process, "allocator_library", lambda: str(library))
+    monkeypatch.delenv(process.ALLOCATOR_ENV, raising=False)
+    monkeypatch.setenv("LD_PRELOAD", "/opt/libother.so")
+    cli = ["/venv/bin/python", "-m", "cohflash_jax.cli", "reconstruct", "c.h5"]
+    assert not process.preload_allocator_for_cli(["python", "-m", "pytest", "tests"]) and not started
+    # `simulate` and `stream` ran slower on it: only the commands measured faster start again
+    assert not process.preload_allocator_for_cli(["/venv/bin/python", "/venv/bin/cohflash", "simulate", "traffic"])
+    assert not started
+    assert process.preload_allocator_for_cli(cli)
+    ((executable, argv, env),) = started
+    assert executable == sys.executable and argv == cli
+    assert env["LD_PRELOAD"] == f"{library}:/opt/libother.so"
+    monkeypatch.setenv("LD_PRELOAD", str(library))  # the new start: preloaded already
+    assert not process.preload_allocator_for_cli(cli)
+    monkeypatch.delenv("LD_PRELOAD")
+    monkeypatch.setenv(process.ALLOCATOR_ENV, "system")
+    assert not process.preload_allocator_for_cli(cli)
+    monkeypatch.delenv(process.ALLOCATOR_ENV)
+    monkeypatch.setattr(process, "allocator_library", lambda: None)  # not installed
+    assert not process.preload_allocator_for_cli(cli)
+    monkeypatch.setattr(process, "allocator_library", lambda: str(library))
+
+    def refused(*args):
+        raise OSError("exec format error")
+
+    monkeypatch.setattr(process.os, "execve", refused)
+    assert not process.preload_allocator_for_cli(cli) and len(started) == 1
+    monkeypatch.setattr(process, "started_as", lambda argv: False)  # `sys.orig_argv` set by a script
+    monkeypatch.setattr(process.os, "execve", lambda *args: started.append(args))
+    assert not process.preload_allocator_for_cli(cli) and len(started) == 1
+    monkeypatch.undo()
+
+    installed = process.allocator_library()
+    if installed is None:
+        pytest.skip("mimalloc is not installed here: no real process to look at")
+    capture = tmp_path / "c.h5"
+    assert main(["simulate", "planar", "--size", "4x4", "--steps", "64", "--out", str(capture), "--quiet"]) == 0
+    probe = tmp_path / "cohflash"  # a script named as the console script is: a command's process
+    probe.write_text(
+        "import sys\n"
+        "from cohflash_jax.cli import main\n"
+        "assert main(sys.argv[1:]) == 0\n"
+        "print('mimalloc' in open('/proc/self/maps').read())\n"
+    )
+    mapped = {}
+    for allocator in ("mimalloc", "system"):
+        out = tmp_path / f"{allocator}.h5"
+        env = dict(os.environ, COHFLASH_ALLOCATOR=allocator)
+        env.pop("LD_PRELOAD", None)
+        args = ["reconstruct", str(capture), "--out", str(out), "--quiet"]
+        done = subprocess.run([sys.executable, str(probe), *args], capture_output=True, text=True, env=env)
+        assert done.returncode == 0, done.stderr[-2000:]
+        mapped[allocator] = done.stdout.split()[-1]
+    assert mapped == {"mimalloc": "True", "system": "False"}
+    with h5py.File(tmp_path / "mimalloc.h5") as a, h5py.File(tmp_path / "system.h5") as b:
+        np.testing.assert_array_equal(a["depth_m"][()], b["depth_m"][()])
+
+
 def test_a_platform_list_without_the_cpu_gives_no_cpu_streams_not_an_error(monkeypatch):
     """With `JAX_PLATFORMS=cuda` JAX has no CPU backend, and asking for its CPU devices raises
     ("Unknown backend cpu"): `use_cpu_streams`, which every `cohflash` command calls first,
