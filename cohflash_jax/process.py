@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import gc
 import os
-import platform
 import sys
 
 _PAUSED = False  # garbage collection paused by `pause_garbage_collection_for_cli`
@@ -73,7 +72,7 @@ def allocator_library() -> str | None:
     """The path of mimalloc's shared library where it is installed (Debian and Ubuntu:
     `libmimalloc2.0`), else None. Looked for by name in the usual library folders: asking the
     loader's cache (`ctypes.util.find_library`) starts subprocesses, slower than the lookups."""
-    machine = platform.machine()
+    machine = os.uname().machine if hasattr(os, "uname") else ""
     for folder in ALLOCATOR_FOLDERS:
         for name in ALLOCATOR_LIBRARIES:
             path = os.path.join(folder.format(machine=machine), name)
