@@ -89,7 +89,7 @@ def preload_allocator_for_cli(argv) -> bool:
 
     XLA builds and frees many small objects as it compiles a program and as it loads a compiled
     one; glibc's `malloc` and `free` were ~30 % of a load. On mimalloc a first (cold)
-    full-capture `cohflash reconstruct` took ~12 % less, a warm one the same, the depth files
+    full-capture `cohflash reconstruct` took 8–13 % less, a warm one the same, the depth files
     identical (docs/performance.md). Only a preload replaces the allocator of the libraries
     already loaded (Python's own among them), hence the new start (~15 ms): the package calls
     this first, before any import or thread of its own. A library user's process, a test run or
