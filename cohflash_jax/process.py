@@ -104,7 +104,9 @@ def preload_allocator_for_cli(argv) -> bool:
     try:
         sys.stdout.flush()
         sys.stderr.flush()
-        os.execve(sys.executable, list(argv), env)
+        # the interpreter named by its path: started as a bare `python`, the new start would
+        # look for itself on PATH, which may lead to another installation
+        os.execve(sys.executable, [sys.executable, *argv[1:]], env)
     except OSError:  # e.g. the interpreter cannot be run again: the command runs on as it is
         return False
     return True  # not reached

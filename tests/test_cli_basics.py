@@ -477,7 +477,7 @@ def test_a_cohflash_process_starts_again_on_mimalloc_where_it_is_installed(monke
     assert not started
     assert process.preload_allocator_for_cli(cli)
     ((executable, argv, env),) = started
-    assert executable == sys.executable and argv == cli
+    assert executable == sys.executable and argv == [sys.executable, *cli[1:]]
     assert env["LD_PRELOAD"] == f"{library}:/opt/libother.so"
     monkeypatch.setenv("LD_PRELOAD", str(library))  # the new start: preloaded already
     assert not process.preload_allocator_for_cli(cli)
