@@ -117,7 +117,7 @@ def allocator_environment(environ=None) -> dict | None:
     command's process runs (`preload_allocator_for_cli`); None where it runs as `environ` says
     already: mimalloc is not installed, is preloaded already, or `COHFLASH_ALLOCATOR=system`."""
     environ = os.environ if environ is None else environ
-    if environ.get(ALLOCATOR_ENV, "mimalloc").lower() != "mimalloc":
+    if not mimalloc_asked(environ):
         return None
     library = allocator_library()
     preloaded = environ.get("LD_PRELOAD", "")
@@ -126,9 +126,15 @@ def allocator_environment(environ=None) -> dict | None:
     return dict(environ, LD_PRELOAD=f"{library}:{preloaded}" if preloaded else library)
 
 
+def mimalloc_asked(environ) -> bool:
+    """Whether `environ` leaves `cohflash` commands to mimalloc: the default, unless
+    `COHFLASH_ALLOCATOR` names another allocator (e.g. "system")."""
+    return environ.get(ALLOCATOR_ENV, "mimalloc").lower() == "mimalloc"
+
+
 def allocator_description() -> str:
     """The allocator `cohflash` commands run on here, as benchmarks print it."""
-    if os.environ.get(ALLOCATOR_ENV, "mimalloc").lower() != "mimalloc":
+    if not mimalloc_asked(os.environ):
         return f"allocator: the C library's ({ALLOCATOR_ENV}={os.environ[ALLOCATOR_ENV]})"
     library = allocator_library()
     if library is None or not sys.platform.startswith("linux"):
