@@ -32,9 +32,9 @@ _QUICK_COMPILE: contextvars.ContextVar[bool] = contextvars.ContextVar("quick_com
 QUICK_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
 # On the CPU a quick program is also emitted by XLA's older loop emitters: the fusion emitters'
 # own lowering (MLIR, kernel by kernel) was most of a quick compile, even at the lowest level.
-# Not for optimised programs, whose code the fusion emitters make faster (the 3000-frame
-# inversion: 4.6 % slower), unless a program asks for them (`async_filter_jit`'s
-# `loop_emitters`: the design's searches, as fast either way). The loop emitters
+# Not for optimised programs, whose code the fusion emitters make faster, unless a program asks
+# for them (`async_filter_jit`'s `loop_emitters`: the design's searches, as fast either way, and
+# a long sweep's inversion, whose compile is most of a first run). The loop emitters
 # repeat an operand for each read of it, so a long chain of steps each reading its input twice
 # compiles in time doubling with each step: fit for the package's own programs, which the
 # suite compiles, not for arbitrary ones (docs/performance.md)
