@@ -460,12 +460,18 @@ class ExecutableCache:
         payload, in_tree, out_tree = pickle.loads(path.read_bytes())
         if b"lapack_" in payload:  # it calls LAPACK kernels: bound before it runs
             bind_lapack_kernels()
-        try:
+        if devices is None or len(devices) != 1 or devices[0].platform != "cpu" or not CPU_ENTRIES_SHARED:
             return deserialize_and_load(payload, in_tree, out_tree, execution_devices=devices)
-        except KeyError:  # compiled for another of this process's CPU devices (`placement`)
-            if devices is None or len(devices) != 1 or devices[0].platform != "cpu":
-                raise
+        # one CPU device: the entry may have been compiled for another of this process's
+        # (`placement`), which `deserialize_and_load` finds out only after loading the whole
+        # executable, so it is loaded for this device at once, whichever it was compiled for
+        try:
             return load_on_cpu_device(payload, in_tree, out_tree, devices[0])
+        except CpuRebindError as cannot_move:
+            try:  # another JAX: loadable still on the device it was compiled for
+                return deserialize_and_load(payload, in_tree, out_tree, execution_devices=devices)
+            except KeyError:
+                raise cannot_move from None
 
     def _prefetched_program(self, path: Path, devices):
         """The executable `prefetch` loaded for `path` (waiting for it), where it was loaded

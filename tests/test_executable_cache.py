@@ -320,20 +320,30 @@ PREFETCHED_RUN = textwrap.dedent(
     # as `python -m cohflash_jax.cli COMMAND …` starts: the package's import sees the command
     argv = json.loads(sys.argv[1])
     sys.orig_argv = [sys.executable, "-m", "cohflash_jax.cli", *argv]
+    import jax.experimental.serialize_executable as serialized
+    load, refused = serialized.deserialize_and_load, []
+    def counted(*args, **kwargs):  # an executable loaded whole, then refused for its device
+        try:
+            return load(*args, **kwargs)
+        except KeyError:
+            refused.append(1)
+            raise
+    serialized.deserialize_and_load = counted
     import cohflash_jax
     from cohflash_jax.runtime import EXECUTABLES
     started = len(EXECUTABLES.prefetched)
     from cohflash_jax.cli import main
     assert main([*argv, "--quiet"]) == 0
-    print(json.dumps({"started": started, "used": EXECUTABLES.prefetched_used,
-                      "loaded": EXECUTABLES.loaded, "compiled": EXECUTABLES.compiled}))
+    print(json.dumps({"started": started, "used": EXECUTABLES.prefetched_used, "loaded": EXECUTABLES.loaded,
+                      "compiled": EXECUTABLES.compiled, "refused": len(refused)}))
     """
 )
 
 
 def prefetched_run(argv: list, cache) -> dict:
     """`cohflash ARGV` in a fresh process on the executable cache `cache`: how many entries its
-    import started loading, how many of those it used, how many it loaded and compiled."""
+    import started loading, how many of those it used, how many it loaded and compiled, and
+    how many loads were refused for their device after loading (work thrown away)."""
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "COHFLASH_JAX_CACHE": str(cache)}
     done = subprocess.run(
         [sys.executable, "-c", PREFETCHED_RUN, json.dumps([str(a) for a in argv])],
@@ -398,7 +408,8 @@ def test_a_stream_over_two_cpu_streams_takes_its_last_runs_programs(tmp_path):
     and its entry loaded for the second (`runtime.load_on_cpu_device`); the next run takes
     every program from the import's loads, each onto its device, compiling none. (Loaded for
     every device, the prefetched programs refused one device's arguments and were compiled
-    again every run.)"""
+    again every run; loaded first as compiled, an entry for the second device was loaded
+    whole, refused, and loaded again.)"""
     from cohflash_jax.cli import main
 
     capture = tmp_path / "c.h5"  # 512 px of 35 frames: two sub-tiles, one on each device
@@ -410,6 +421,7 @@ def test_a_stream_over_two_cpu_streams_takes_its_last_runs_programs(tmp_path):
     assert len(list((cache / "executables").glob("*.exe"))) == 2
     second = prefetched_run(argv, cache)
     assert second["compiled"] == 0 and second["started"] == second["used"] == second["loaded"] == 4
+    assert first["refused"] == second["refused"] == 0
 
 
 def test_an_option_this_xla_does_not_know_is_left_out_not_the_compile():
