@@ -68,9 +68,10 @@ class Writer:
             out[k] = np.clip(np.round(self.offset_dn + self.gain_dn_per_e * e), 0, 16383)
         return out
 
-    def write(self, path, depth_m: np.ndarray, rng: np.random.Generator, alter=None) -> None:
+    def write(self, path, depth_m: np.ndarray, rng: np.random.Generator, alter=None, chunks=None) -> None:
         """A version-1 capture file (design reference §4) with the modulator's settings;
-        `alter`: a function applied to the frames before they are written (bad pixels)."""
+        `alter`: a function applied to the frames before they are written (bad pixels);
+        `chunks`: the frames' HDF5 chunk shape (default: stored contiguous)."""
         frames = self.frames(depth_m, rng)
         frames = frames if alter is None else alter(frames)
         with h5py.File(path, "w") as fh:
@@ -87,7 +88,7 @@ class Writer:
                     "adc_bits": 14,
                 }
             )
-            fh["frames"] = frames
+            fh.create_dataset("frames", data=frames, chunks=chunks)
             fh["frequencies_hz"] = self.frequencies_hz
             fh["hybrid_phases_rad"] = np.array([0, np.pi / 2, np.pi, 1.5 * np.pi])
 

@@ -67,6 +67,31 @@ def test_independent_drifting_capture_reconstructs_by_default_and_says_why(tmp_p
     assert np.all(np.abs(depth - 30.5) < 6 * sigma)
 
 
+def test_a_drift_the_survey_finds_after_the_first_tile_is_dispatched_reaches_its_pixels(tmp_path):
+    """A capture read straight into its sub-tiles is dispatched from a thread while the next
+    tile is read (`reconstruct.api.TileFeeder`), and the carrier survey is waited for only once
+    the second tile is read: the first tile is dispatched as static before the survey has
+    found the drift, and must be dispatched again with it. Every pixel of both tiles is then
+    valid and within 6 σ; a first tile left static would have no valid pixel."""
+    from cohflash_jax.capture import Capture
+    from cohflash_jax.reconstruct.engine import PieceReader
+
+    from .independent_writer import PAPER_FREQUENCIES_HZ
+
+    rng = np.random.default_rng(3)
+    n = 1200  # a long sweep (its carrier surveyed), short enough to write and compile quickly
+    writer = Writer(frequencies_hz=PAPER_FREQUENCIES_HZ[:n], drift_rad=random_walk_rad(n, 3.0, rng))
+    cap, out = tmp_path / "drift.h5", tmp_path / "depth.h5"
+    writer.write(cap, np.full((64, 64), 30.5), rng, chunks=(1, 4, 32, 64))
+    with Capture(cap) as c:
+        assert PieceReader.of(c, 32) is not None  # tiles of 32 rows read into their sub-tiles
+    assert main(["reconstruct", str(cap), "--out", str(out), "--tile-rows", "32", "--quiet"]) == 0
+    meta, depth, valid, sigma = _meta(out)
+    assert meta["carrier_alignment"] == "common"
+    assert valid[:32].all() and valid[32:].all()
+    assert np.all(np.abs(depth - 30.5) < 6 * sigma)
+
+
 def test_auto_on_a_static_capture_aligns_statically(tmp_path):
     rng = np.random.default_rng(12)
     cap, out = tmp_path / "static.h5", tmp_path / "depth.h5"

@@ -5,6 +5,7 @@ registration files (`open_and_reconstruct`). Each takes the instrument it recons
 from __future__ import annotations
 
 import concurrent.futures
+import contextvars
 import dataclasses
 import json
 import math
@@ -143,6 +144,24 @@ def plan_and_dispatcher(instrument, options, saturation, alignment, sub_px):
     return setup
 
 
+class TileFeeder:
+    """Dispatches tiles in a thread of its own, in turn, while the caller reads the next. A CPU
+    device queues a bounded number of program calls and a call beyond them waits, so
+    dispatching a tile's sub-tiles returns only when most of them have run: dispatched from
+    the caller's thread, the next tile's read began then, and the devices ran out of work
+    while it was read (the first tile's most of all)."""
+
+    def __init__(self):
+        self.pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="dispatch-tiles")
+
+    def submit(self, dispatch, *arguments) -> concurrent.futures.Future:
+        """`dispatch(*arguments)` after the tiles submitted before it: a future of its `PendingTile`."""
+        return self.pool.submit(contextvars.copy_context().run, dispatch, *arguments)
+
+    def close(self):
+        self.pool.shutdown(wait=True)
+
+
 class TileSource:
     """The inputs of a capture's row tiles of `rows` rows for `process_tile`: the frames
     (registered onto CCD 1's grid where `registration_maps` are given), the upstream status and
@@ -177,6 +196,12 @@ class TileSource:
         block = np.full((4, self.rows, self.w), fill, np.float32)
         block[:, : r1 - r0] = arr[:, r0:r1]
         return block.reshape(4, self.rows * self.w)
+
+    def feeds_in_thread(self) -> bool:
+        """Whether tiles may be dispatched from a thread while the next is read (`TileFeeder`):
+        where they are read into their sub-tiles (`PieceReader`), which stay theirs until
+        gathered, so no read waits for a dispatch's copies."""
+        return isinstance(self.reader, PieceReader)
 
     def hold_last(self, held: bool) -> None:
         """Whether the last tile's frames are still in use (`BlockReader.hold_last`)."""
@@ -260,6 +285,8 @@ def reconstruct_capture(
 
     def collect(pending, bar):
         tile, r0, r1 = pending
+        if isinstance(tile, concurrent.futures.Future):
+            tile = tile.result()
         for k, v in tile.gather().items():
             arr = v.reshape(rows, w)[: r1 - r0]
             band = outputs.setdefault(k, np.empty((band_end - band_start, w), arr.dtype))
@@ -268,8 +295,9 @@ def reconstruct_capture(
 
     # "auto" carrier alignment looks at the first tile: its survey (NumPy) runs in a thread
     # while the first tile is dispatched as if static, which "auto" finds in most captures;
-    # where it finds a drift, the tile is dispatched again with it, before the next tile is
-    # read over its buffer
+    # where it finds a drift, the tile is dispatched again with it before the second is
+    # dispatched: after the second is read where tiles keep their buffers until gathered
+    # (`TileSource.feeds_in_thread`), else before a read could take the first tile's buffer
     auto = alignment is None and options.carrier == "auto"
     # where this process's programs are being loaded (a warm cache) the first tile is read
     # beside the loads, at once; where they are compiled, the plan is made first and the
@@ -292,22 +320,45 @@ def reconstruct_capture(
             pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="carrier-survey")
             survey = pool.submit(align_carrier, options, instrument, first[1], first[3], first[4])
             pool.shutdown(wait=False)  # its thread ends with the survey
-        pending = None
-        for r0 in range(band_start, band_end, rows):
-            r1, block, data_status, d, g = first if r0 == band_start else source.inputs(r0)
-            r1 = min(r1, band_end)
-            # dispatched asynchronously: the next tile is read while this one computes
-            tile = dispatcher.dispatch(block, d, data_status, g)
-            if survey is not None:
-                alignment, survey = survey.result(), None
-                if alignment.mode != "static":
-                    plan, dispatcher = plan_and_dispatcher(instrument, options, saturation, alignment, sub_px)
+        pending = first_inputs = None
+        feeder = TileFeeder() if source.feeds_in_thread() else None
+
+        def follow_survey():
+            """Take the survey's alignment; where it found a drift, dispatch the first tile
+            again with it (its frames still held; its first dispatch queued before)."""
+            nonlocal alignment, plan, dispatcher, pending, survey
+            alignment, survey = survey.result(), None
+            if alignment.mode != "static":
+                plan, dispatcher = plan_and_dispatcher(instrument, options, saturation, alignment, sub_px)
+                if isinstance(pending[0], concurrent.futures.Future):
+                    pending[0].result()
+                pending = (dispatcher.dispatch(*first_inputs), *pending[1:])
+
+        try:
+            for r0 in range(band_start, band_end, rows):
+                r1, block, data_status, d, g = first if r0 == band_start else source.inputs(r0)
+                r1 = min(r1, band_end)
+                if survey is not None and r0 != band_start:
+                    follow_survey()  # the second tile read beside the survey, before its dispatch
+                if feeder is not None:
+                    # fed in a thread: the next tile is read while this one's sub-tiles queue
+                    tile = feeder.submit(dispatcher.dispatch, block, d, data_status, g)
+                    source.hold_last(True)
+                else:
+                    # dispatched asynchronously: the next tile is read while this one computes
                     tile = dispatcher.dispatch(block, d, data_status, g)
-            source.hold_last(tile.holds_frames)
-            if pending is not None:
-                collect(pending, bar)
-            pending = (tile, r0, r1)
-        collect(pending, bar)
+                    source.hold_last(tile.holds_frames)
+                if pending is not None:
+                    collect(pending, bar)
+                pending = (tile, r0, r1)
+                if r0 == band_start:
+                    first_inputs = (block, d, data_status, g)
+                    if survey is not None and (feeder is None or r1 >= band_end):
+                        follow_survey()  # the next read may take the first tile's buffer, or there is none
+            collect(pending, bar)
+        finally:
+            if feeder is not None:
+                feeder.close()
     meta = depth_meta(
         plan,
         options,
