@@ -724,6 +724,16 @@ def use_cpu_streams(count: int = CLI_CPU_STREAMS) -> int:
         return 0
 
 
+def device_value(value):
+    """A NumPy array or Python number as a JAX array on the default device, typed as
+    `jnp.asarray` types it (a Python float weakly), by a copy: `jnp.asarray` stages the
+    conversion as an XLA program of its own, one per shape, which every process compiles or
+    loads from JAX's cache before its first use (tens of ms of a plan's making)."""
+    import jax
+
+    return jax.device_put(value)
+
+
 def stream_devices() -> list:
     """The devices sub-tiles of a reconstruction (and chunks of a simulation) are spread over,
     in turn: every local CPU device where JAX has several (`use_cpu_streams`), else the

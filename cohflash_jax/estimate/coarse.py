@@ -26,7 +26,7 @@ from jaxtyping import Array, Bool, Complex, Float, Int
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import crlb_frequency_only_m, frequency_only_sigma_m
 from ..geometry import POINTS_PER_ENVELOPE, SweepGeometry
-from ..runtime import MATMUL_PRECISION
+from ..runtime import MATMUL_PRECISION, device_value
 from .detection import Detection, delay_detection, uniform_detection, uniform_sums
 
 
@@ -199,7 +199,7 @@ class UniformSpectrum(AbstractCoarseStage):
     def of(cls, geometry: SweepGeometry, weights, min_bin: int, false_alarm: float) -> UniformSpectrum:
         """The stage of a uniform sweep, its detection test over the bins it searches."""
         detection = uniform_detection(geometry.num_frames, min_bin, false_alarm)
-        return cls(geometry, jnp.asarray(weights), detection, min_bin)
+        return cls(geometry, device_value(weights), detection, min_bin)
 
     def detection_energy(self, coarse):
         return uniform_sums(coarse.spectrum, self.geometry.num_frames)

@@ -38,6 +38,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Complex, Float
 
+from ..runtime import device_value
+
 DEFAULT_FALSE_ALARM = 1e-6
 _BISECTION_STEPS = 200
 
@@ -109,7 +111,7 @@ class Detection(eqx.Module):
         if not 0 < false_alarm <= 1:
             raise ValueError(f"the false-alarm probability must lie in (0, 1], got {false_alarm}")
         rate = DEFAULT_FALSE_ALARM if false_alarm == 1 else false_alarm
-        return cls(jnp.asarray(union_limits(scales, dims, searched, num_frames, rate)), float(false_alarm))
+        return cls(device_value(union_limits(scales, dims, searched, num_frames, rate)), float(false_alarm))
 
     def ratio(self, energy: Float[Array, "P G"], total_energy: Float[Array, " P"]) -> Float[Array, " P"]:
         """max_g E_g/(limit_g·T) (P,): above 1 where noise alone would rarely reach."""

@@ -23,6 +23,7 @@ from ..estimate.table import ToneTable
 from ..estimate.window_model import UniformModel
 from ..geometry import SweepGeometry
 from ..instrument import Instrument
+from ..runtime import device_value
 from .policy import ReconstructOptions, ValidityPolicy, applied_snr_threshold_db
 
 # Hybrid phases this close to one another (condition number of the I/Q design) cannot be separated
@@ -94,7 +95,7 @@ def build_plan(
     weights = np.asarray(instrument.modulator.weights(float(np.mean(f))), np.float64)
     delay = float(instrument.system_delay_s)
     geometry = SweepGeometry.of(f, weights, delay)
-    model = UniformModel(float(f[0]), geometry.step_hz, jnp.asarray(weights), delay, num_frames=f.size)
+    model = UniformModel(float(f[0]), geometry.step_hz, device_value(weights), delay, num_frames=f.size)
     if geometry.uniform:
         coarse = UniformSpectrum.of(geometry, weights, geometry.first_bin(options.min_depth_m), options.false_alarm)
     else:
@@ -126,7 +127,7 @@ def program_plan(plan: TilePlan) -> TilePlan:
     floats they stand for (float32 arithmetic stays float32), not constants compiled into the
     programs. A calibration with a new τ_sys (within the same fold), or another SNR or χ²
     threshold, then runs the programs already compiled."""
-    runtime = lambda x: jnp.asarray(float(x))
+    runtime = lambda x: device_value(float(x))
 
     def convert(node):
         if isinstance(node, SweepGeometry):
