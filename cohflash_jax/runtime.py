@@ -728,7 +728,8 @@ def device_value(value):
     """A NumPy array or Python number as a JAX array on the default device, typed as
     `jnp.asarray` types it (a Python float weakly), by a copy: `jnp.asarray` stages the
     conversion as an XLA program of its own, one per shape, which every process compiles or
-    loads from JAX's cache before its first use (tens of ms of a plan's making)."""
+    loads from JAX's cache before its first use, on its way to its first dispatch
+    (docs/performance.md)."""
     import jax
 
     return jax.device_put(value)
