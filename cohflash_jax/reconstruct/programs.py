@@ -277,7 +277,7 @@ def _invert_sequence(plan: TilePlan, r, noise_var, total_var, flags, data_status
 
 # A long sweep's inversion is compiled through XLA's CPU loop emitters (`async_filter_jit`'s
 # `loop_emitters`): its compile, most of a first run's time, is about a third shorter, for an
-# inversion a few per cent slower (a warm full capture ~0.1 CPU-s at most, a first run 0.6 s
-# less). Short sweeps' `rotate_and_invert`, whose speed is a 10 Hz stream's, keeps the fusion
-# emitters. Measured: docs/performance.md
+# inversion a few per cent slower: each warm run pays a little of what a first run saves. Short
+# sweeps' `rotate_and_invert`, whose speed is a 10 Hz stream's, keeps the fusion emitters.
+# Measured: docs/performance.md
 invert_sequence = async_filter_jit(_invert_sequence, loop_emitters=True)
