@@ -324,12 +324,12 @@ class DelayPeriodogram(AbstractCoarseStage):
         outer, inner = delay_basis_tables(frequencies_hz, delays[0], step, depths.size)
         return cls(
             geometry,
-            jnp.asarray(weights),
+            device_value(weights),
             detection,
-            jnp.asarray(frequencies_hz),
-            jnp.asarray(depths),
-            jnp.asarray(outer),
-            jnp.asarray(inner),
+            device_value(frequencies_hz),
+            device_value(depths),
+            device_value(outer),
+            device_value(inner),
         )
 
     def __call__(self, sequence) -> CoarseSpectrum:

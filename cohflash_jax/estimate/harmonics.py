@@ -24,6 +24,7 @@ from jaxtyping import Array, Float
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..geometry import SweepGeometry, delay_window
+from ..runtime import device_value
 from .base import DepthEstimate
 from .time_domain import TimeDomainML
 from .window_ml import grid_for
@@ -80,8 +81,8 @@ class HarmonicResolver(eqx.Module):
         top = int(math.ceil(window[1] * 2 / C * step * highest)) + 1
         readings = tuple((int(n), m, s) for n in present_orders(weights) for m in range(top + 1) for s in (1, -1))
         fitter = TimeDomainML(
-            jnp.asarray(frequencies_hz, jnp.float64),
-            jnp.asarray(weights, jnp.float64),
+            device_value(np.asarray(frequencies_hz, np.float64)),
+            device_value(np.asarray(weights, np.float64)),
             geometry.system_delay_s,
             half,
             points,

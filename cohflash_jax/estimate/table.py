@@ -31,7 +31,7 @@ from jaxtyping import Array, Float
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import depth_information, phase_locked_sigma_m, sigma_from_information, well_posed
-from ..runtime import MATMUL_PRECISION
+from ..runtime import MATMUL_PRECISION, device_value
 from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult, reduced_chi2
 from .coarse import first_argmax
 from .polish import STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA, polish_depth
@@ -129,11 +129,11 @@ def build_tone_table(
     norm0 = np.sqrt(np.maximum(coeffs[:, 0], 1e-300))
     unit = (exact[:, 0] / norm0[:, None]).T.astype(np.float32)
     return ToneTable(
-        jnp.asarray(unit),
-        jnp.asarray(centred),
-        jnp.asarray(means),
-        jnp.asarray(coeffs),
-        jnp.asarray(slope_coeffs),
+        device_value(unit),
+        device_value(centred),
+        device_value(means),
+        device_value(coeffs),
+        device_value(slope_coeffs),
         float(depth_range_m[0]),
         float(spacing_m),
     )

@@ -14,6 +14,7 @@ from jaxtyping import Array, Float
 
 from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import depth_information, sigma_from_information, well_posed
+from ..runtime import device_value
 from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult, best_of, reduced_chi2
 from .polish import Polish, descended, newton_polish, polish_in_passes
 from .window_ml import grid_for
@@ -236,7 +237,7 @@ class TimeDomainML(AbstractDepthEstimator):
         else:
             half, points, _ = grid_for(g.bin_depth_m, g.ripple_m)
         return cls(
-            jnp.asarray(setup.frequencies_hz),
+            device_value(setup.frequencies_hz),
             setup.model.weights,
             g.system_delay_s,
             half,

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..capture import Capture
 from ..process import take_prefaulted
-from ..runtime import EXECUTABLES, QUICK_COMPILE_MAX_PIXELS, place_on_devices, stream_devices
+from ..runtime import EXECUTABLES, QUICK_COMPILE_MAX_PIXELS, device_value, place_on_devices, stream_devices
 from .plan import TilePlan, program_plan
 from .programs import inversion_plan, prepare_stages, process_stages
 
@@ -113,7 +113,7 @@ class TileDispatcher:
     def __init__(self, plan: TilePlan, sub_px: int | None = None, carrier_phase_rad=None):
         self.sub_px = sub_px
         self.devices = stream_devices()
-        carrier = None if carrier_phase_rad is None else jnp.asarray(carrier_phase_rad)
+        carrier = None if carrier_phase_rad is None else device_value(carrier_phase_rad)
         plan = program_plan(plan)
         self.placed = place_on_devices((plan.iq, inversion_plan(plan), carrier), self.devices)
         self.no_status = {}  # (pixels, device) → placed zeros: "no upstream status"
@@ -125,7 +125,7 @@ class TileDispatcher:
         has one (a registered capture's resampling has), and the two share their programs."""
         if (pixels, device) not in self.no_status:
             zeros = np.zeros(pixels, np.int8)
-            self.no_status[pixels, device] = jax.device_put(zeros, device) if device is not None else jnp.asarray(zeros)
+            self.no_status[pixels, device] = jax.device_put(zeros, device)
         return self.no_status[pixels, device]
 
     def cut(self, frames) -> tuple[int, int]:
