@@ -88,11 +88,11 @@ def preload_allocator_for_cli(argv) -> bool:
     unless it is preloaded already or `COHFLASH_ALLOCATOR=system` asks for the C library's.
 
     XLA builds and frees many small objects as it compiles a program and as it loads a compiled
-    one; glibc's `malloc` and `free` were ~30 % of a load. On mimalloc a first (cold)
-    full-capture `cohflash reconstruct` took 8–13 % less, a warm one the same, the depth files
-    identical (docs/performance.md). Only a preload replaces the allocator of the libraries
-    already loaded (Python's own among them), hence the new start (~15 ms): the package calls
-    this first, before any import or thread of its own. A library user's process, a test run or
+    one, where glibc's `malloc` and `free` were a large share of the time; on mimalloc a first
+    full-capture run is shorter, a warm one the same, the depth files identical (measured:
+    docs/performance.md). Only a preload replaces the allocator of the libraries already
+    loaded (Python's own among them), hence the new start: the package calls this first,
+    before any import or thread of its own. A library user's process, a test run or
     a Dask worker (not a command), and a script that imitates a command (`started_as`), keep
     their allocator. Returns False where nothing is done (or the new start failed); a new start
     does not return."""
