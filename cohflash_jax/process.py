@@ -12,13 +12,6 @@ import os
 import sys
 
 _PAUSED = False  # garbage collection paused by `pause_garbage_collection_for_cli`
-_PREFAULTED: dict = {}  # the thread mapping host memory for `take_prefaulted`, then its mapping
-
-# Commands whose first read of a capture goes into memory mapped while the package imports
-# (`prefault_for_cli`), and the most they map: a full capture's first tile of 32 rows
-# (4 × 3000 frames × 32 × 320 px × 2 bytes = 246 MB) fits; a larger tile reads as before.
-PREFAULT_COMMANDS = ("reconstruct",)
-PREFAULT_MAX_BYTES = 256 * 2**20
 
 
 def cli_command(argv) -> str | None:
@@ -37,17 +30,26 @@ def cli_command(argv) -> str | None:
     return None
 
 
-def cli_input_bytes(argv) -> int | None:
-    """The size of the largest existing file named on a command line: a `cohflash` run's
-    capture (the depth file it may overwrite, a calibration or a registration are smaller)."""
-    sizes = []
+def cli_input_path(argv) -> str | None:
+    """The largest existing file named on a command line: a `cohflash` run's capture (the depth
+    file it may overwrite, a calibration or a registration are smaller); None where none is."""
+    sizes = {}
     for arg in argv[1:]:
         try:
             if not arg.startswith("-") and os.path.isfile(arg):
-                sizes.append(os.path.getsize(arg))
+                sizes[arg] = os.path.getsize(arg)
         except (OSError, ValueError):
             continue
-    return max(sizes, default=None)
+    return max(sizes, key=sizes.get, default=None)
+
+
+def cli_input_bytes(argv) -> int | None:
+    """The size of `cli_input_path`'s file (None where there is none)."""
+    path = cli_input_path(argv)
+    try:
+        return None if path is None else os.path.getsize(path)
+    except OSError:
+        return None
 
 
 # The allocator a `cohflash` command runs on where the system has it (`preload_allocator_for_cli`),
@@ -167,47 +169,6 @@ def gpu_memory_on_demand_for_cli(argv) -> bool:
         return False
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     return os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"].lower() in ("false", "0")
-
-
-def prefault_for_cli(argv) -> bool:
-    """Where this interpreter runs `cohflash reconstruct` on a capture file, map as much memory
-    as its first tile can need (its file's size, at most `PREFAULT_MAX_BYTES`) in a thread,
-    with every page touched, while the package imports on the other core; the tile buffer is
-    then taken from it (`take_prefaulted`). Memory a process touches for the first time costs
-    more than reading the capture into it: in a warm full-capture run the kernel's zeroing of
-    new pages was ~12 % of the process's CPU time, most of it under the first tile's read
-    (docs/performance.md). Returns whether a mapping started."""
-    import mmap
-    import threading
-
-    populate = getattr(mmap, "MAP_POPULATE", None)  # Linux
-    nbytes = min(cli_input_bytes(argv) or 0, PREFAULT_MAX_BYTES)
-    # a registered capture's tiles are resampled into buffers of their own, a Dask run's read
-    # by its workers: neither reads into the mapping
-    elsewhere = any(a.startswith(("--registration", "--scheduler")) for a in argv)
-    if cli_command(argv) not in PREFAULT_COMMANDS or populate is None or nbytes <= 0 or elsewhere or _PREFAULTED:
-        return False
-
-    def run():
-        try:
-            _PREFAULTED["mapping"] = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | populate)
-        except (OSError, ValueError):  # no memory for it: the tile is allocated as usual
-            pass
-
-    _PREFAULTED["thread"] = threading.Thread(target=run, name="prefault", daemon=True)
-    _PREFAULTED["thread"].start()
-    return True
-
-
-def take_prefaulted(nbytes: int):
-    """The memory `prefault_for_cli` mapped (zeroed, writable, page-aligned), once, where it
-    holds `nbytes`; else None (and it is let go)."""
-    thread = _PREFAULTED.pop("thread", None)
-    if thread is None:
-        return None
-    thread.join()
-    mapping = _PREFAULTED.pop("mapping", None)
-    return mapping if mapping is not None and len(mapping) >= nbytes else None
 
 
 def single_threaded_blas_for_cli(argv) -> bool:

@@ -39,10 +39,6 @@ QUICK_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
 # compiles in time doubling with each step: fit for the package's own programs, which the
 # suite compiles, not for arbitrary ones (docs/performance.md)
 QUICK_COMPILE_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
-# work on at most this many pixels (a region of interest, a test's capture, the pixels a
-# posterior or a calibration fits) runs its programs once or twice, so they are compiled for a
-# short compile; larger work for speed
-QUICK_COMPILE_MAX_PIXELS = 1024
 
 
 def quick_compile_options(platform: str) -> dict:

@@ -31,8 +31,9 @@ from .constants import SPEED_OF_LIGHT_M_PER_S
 from .effects import EffectSettings, parse_effects
 from .instrument import Instrument
 from .modulator import beat_spectrum
-from .runtime import QUICK_COMPILE_MAX_PIXELS, async_filter_jit, place_on_devices, quick_compile, stream_devices
+from .runtime import async_filter_jit, place_on_devices, quick_compile, stream_devices
 from .scenes import Scene
+from .tiling import QUICK_COMPILE_MAX_PIXELS
 
 # Streams of the PRNG key, one per effect, so an effect's draws never shift another's.
 _KEY_SPECKLE, _KEY_TURBULENCE, _KEY_FRAMES = 11, 12, 13

@@ -33,8 +33,9 @@ from .estimate.coarse import unitary_rfft
 from .estimate.iq import align_carrier_static, derotate, iq_from_frames
 from .estimate.window_model import UniformModel, bin_weights, window_tables
 from .reconstruct import TilePlan, process_tile, program_plan
-from .runtime import QUICK_COMPILE_MAX_PIXELS, async_filter_jit, quick_compile
+from .runtime import async_filter_jit, quick_compile
 from .status import Status
+from .tiling import QUICK_COMPILE_MAX_PIXELS
 
 PARAMETERS = ("depth_offset_mm", "amplitude", "carrier_phase_rad")
 LABELS = ("depth − ML (mm)", "amplitude A (DN)", "carrier phase δφ (rad)")

@@ -380,59 +380,103 @@ def test_a_cohflash_process_collects_no_garbage_while_it_imports(tmp_path):
     assert as_library.stdout.split() == ["True", "True", "False"]
 
 
-def test_a_reconstruct_process_reads_its_first_tile_into_memory_mapped_while_it_imports(tmp_path):
-    """`cohflash reconstruct FILE` maps as much memory as its first tile can need (the file's
-    size, at most `PREFAULT_MAX_BYTES`) with its pages touched while the package imports, and
-    the tile buffer is taken from it: the same depth file. Other commands, a library user's
-    process, a Dask run and a registered capture (which read elsewhere) map nothing; memory
-    too small for the tile is let go and the buffer allocated as before."""
+def _pieceable_capture(path, n=1200, seed=5):
+    """A 64×64 capture from the independent writer, chunked as cohflash writes (one CCD, 4
+    frames, 32 rows, whole rows), whose 32-row tiles are read into pieces of 8 rows."""
+    from .independent_writer import PAPER_FREQUENCIES_HZ, Writer
+
+    rng = np.random.default_rng(seed)
+    depth = 30.5 + 0.2 * rng.random((64, 64))
+    Writer(frequencies_hz=PAPER_FREQUENCIES_HZ[:n]).write(path, depth, rng, chunks=(1, 4, 32, 64))
+    return path
+
+
+def test_the_first_tile_read_early_is_laid_out_as_the_reader_lays_it_out(tmp_path):
+    """`early_read.read_first_tile` (a `cohflash reconstruct` process's child, run here in
+    this process) puts the capture's first tile where `engine.PieceReader` puts it in a buffer
+    at the same place, byte for byte, and reports that layout; a capture whose tiles are not
+    read into pieces (too small, compressed) is left, with the reason, and a `--tile-rows`
+    the command line gives is the one it reads."""
     import mmap
 
-    import h5py
+    from cohflash_jax import early_read
+    from cohflash_jax.capture import Capture
+    from cohflash_jax.reconstruct.engine import PieceReader
 
-    from cohflash_jax import process
-    from cohflash_jax.reconstruct.engine import tile_buffer
+    capture = _pieceable_capture(tmp_path / "c.h5")
+    mapping = mmap.mmap(-1, 64 * 2**20)
+    report = early_read.read_first_tile(mapping, str(capture), 32)
+    assert report["read"], report
+    with Capture(capture) as c:
+        reader = PieceReader.of(c, 32)
+        tile = reader.read(0)  # read by the reader itself, into a buffer of its own
+        layout = early_read.layout_key(c.shape, c.frames.dtype, 32, reader.rows_per_piece, reader.stride)
+        assert report["layout"] == layout == [1200, 64, 64, "uint16", 32, 8, 4 * 1200 * 512 * 2]
+        assert report["file"] == early_read.file_identity(c.direct_reader.fd)
+        raw = np.frombuffer(mapping, np.uint8)
+        base = report["address"] - raw.ctypes.data
+        for k, piece in enumerate(tile.pieces):
+            start = base + k * reader.stride
+            np.testing.assert_array_equal(raw[start : start + piece.nbytes].view(np.uint16).reshape(piece.shape), piece)
+        np.testing.assert_array_equal(tile.frames[:, :, 1, :].reshape(4, 1200, 8, 64), c.frames[:, :, 8:16, :])
+    # a small capture's tiles, and a compressed capture's, are read as before
+    small = tmp_path / "small.h5"
+    assert main(["simulate", "planar", "--size", "8x8", "--steps", "64", "--out", str(small), "--quiet"]) == 0
+    assert early_read.read_first_tile(mapping, str(small)) == {"read": False, "why": "its tiles are not read in pieces"}
+    packed = tmp_path / "packed.h5"
+    with h5py.File(capture) as f, h5py.File(packed, "w") as g:
+        g.create_dataset("frames", data=f["frames"][()], chunks=(1, 4, 32, 64), compression="gzip")
+    assert early_read.read_first_tile(mapping, str(packed))["why"] == "frames are filtered (compressed)"
+    argv = ["cohflash", "reconstruct", "c.h5", "--out", "d.h5"]
+    assert early_read.tile_rows_option(argv) is None
+    assert early_read.tile_rows_option([*argv, "--tile-rows", "16"]) == 16
+    assert early_read.tile_rows_option([*argv, "--tile-rows=48"]) == 48
+    assert early_read.tile_rows_option([*argv, "--tile-rows", "x"]) is None
 
-    if not hasattr(mmap, "MAP_POPULATE"):
-        pytest.skip("no MAP_POPULATE on this system: nothing is mapped ahead")
 
-    capture = tmp_path / "c.h5"
-    assert main(["simulate", "planar", "--size", "8x8", "--steps", "64", "--out", str(capture), "--quiet"]) == 0
-    cli = ["python", "-m", "cohflash_jax.cli", "reconstruct", str(capture)]
+def test_a_reconstruct_process_reads_its_first_tile_while_it_imports(tmp_path):
+    """`cohflash reconstruct FILE` forks a child as the package starts importing, which reads
+    the first tile into shared memory the tile reader then takes as read: the same depth file
+    as a process that reads it itself. A file changed after the child read it is read again
+    (the same depth file). Other commands, a library user's or a test run's process, a Dask run
+    and a registered capture (read elsewhere) fork nothing."""
+    from cohflash_jax import early_read
+
+    capture = _pieceable_capture(tmp_path / "c.h5")
+    cli = ["python", "-m", "cohflash_jax.cli", "reconstruct", str(capture), "--out", "d.h5"]
     for argv in (["python", "-m", "pytest"], [*cli[:3], "info", str(capture)], [*cli, "--scheduler", "processes"]):
-        assert not process.prefault_for_cli(argv)
-    assert not process.prefault_for_cli([*cli, "--registration", str(capture)])
-    assert process.take_prefaulted(1) is None  # nothing mapped
-    assert process.prefault_for_cli(cli)
-    mapping = process.take_prefaulted(capture.stat().st_size)
-    assert len(mapping) == capture.stat().st_size and not any(mapping[:4096])
-    assert process.prefault_for_cli(cli) and process.take_prefaulted(capture.stat().st_size + 1) is None
-    assert process.take_prefaulted(1) is None  # taken once
-    assert process.prefault_for_cli(cli)
-    buffer = tile_buffer((4, 64, 2, 8), np.uint16)  # from the mapping: page-aligned, zeroed, writable
-    assert buffer.ctypes.data % 4096 == 0 and buffer.flags.writeable and not buffer.any()
+        assert not early_read.start_for_cli(argv)
+    assert not early_read.start_for_cli([*cli, "--registration", str(capture)])
+    assert not early_read.start_for_cli(cli[:4] + [str(tmp_path / "missing.h5")])
+    assert early_read.take_mapping(1) is None and early_read.outcome() is None  # nothing started
     probe = (
-        "import sys\n"
-        "if sys.argv[1] == 'mapped':  # as `python -m cohflash_jax.cli …` starts\n"
+        "import os, sys\n"
+        "if sys.argv[1] != 'library':  # as `python -m cohflash_jax.cli …` starts\n"
         "    sys.orig_argv = [sys.executable, '-m', 'cohflash_jax.cli', *sys.argv[2:]]\n"
         "import cohflash_jax\n"
-        "from cohflash_jax import process\n"
-        "started = 'thread' in process._PREFAULTED\n"
+        "from cohflash_jax import early_read\n"
+        "if sys.argv[1] == 'touched':  # the capture written again once the child read it\n"
+        "    early_read.wait_for_child()\n"
+        "    st = os.stat(sys.argv[3])\n"
+        "    os.utime(sys.argv[3], ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))\n"
         "from cohflash_jax.cli import main\n"
         "assert main(sys.argv[2:]) == 0\n"
-        "print(started, 'thread' not in process._PREFAULTED)\n"
+        "outcome = early_read.outcome()\n"
+        "print(None if outcome is None else outcome['held'], outcome and outcome['report'].get('read'))\n"
     )
     outs = {}
-    for name in ("mapped", "allocated"):
+    expected = {"early": "True True", "touched": "False True", "library": "None None"}
+    for name, said in expected.items():
         out = tmp_path / f"{name}.h5"
-        args = [name, "reconstruct", str(capture), "--out", str(out), "--quiet"]
+        args = [name, "reconstruct", str(capture), "--out", str(out), "--tile-rows", "32", "--quiet"]
         done = subprocess.run([sys.executable, "-c", probe, *args], capture_output=True, text=True, check=False)
         assert done.returncode == 0, done.stderr[-2000:]
-        assert done.stdout.split()[-2:] == [str(name == "mapped"), "True"]  # started, and taken
+        assert done.stdout.split("\n")[-2] == said, done.stdout
         with h5py.File(out) as f:
-            outs[name] = f["depth_m"][()], f["fit_status"][()]
-    for a, b in zip(outs["mapped"], outs["allocated"]):
-        np.testing.assert_array_equal(a, b)
+            outs[name] = f["depth_m"][()], f["fit_status"][()], f["sigma_m"][()]
+    for name in ("touched", "library"):
+        for a, b in zip(outs["early"], outs[name], strict=True):
+            np.testing.assert_array_equal(a, b)
 
 
 def test_a_cohflash_process_takes_gpu_memory_on_demand_unless_told_otherwise(monkeypatch):

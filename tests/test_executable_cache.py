@@ -118,7 +118,7 @@ def test_quick_compiled_programs_are_kept_apart_and_agree_with_optimised_ones():
 
 
 def test_small_captures_of_one_bucket_and_methods_of_one_capture_share_programs():
-    """A region of interest is padded to its pixel bucket (`engine.pixel_bucket`), so captures
+    """A region of interest is padded to its pixel bucket (`tiling.pixel_bucket`), so captures
     of 5×5 and 6×6 pixels run the same programs; and the I/Q programs take the plan's I/Q stage
     alone, so a second method on the same capture makes its inversion program only (and the
     inversion programs take no I/Q stage, so another saturation level makes its I/Q program
@@ -129,8 +129,8 @@ def test_small_captures_of_one_bucket_and_methods_of_one_capture_share_programs(
 
     import cohflash_jax as cf
     from cohflash_jax.reconstruct import ReconstructOptions, reconstruct_array
-    from cohflash_jax.reconstruct.engine import pixel_bucket
     from cohflash_jax.runtime import EXECUTABLES
+    from cohflash_jax.tiling import pixel_bucket
 
     assert [pixel_bucket(p) for p in (1, 25, 36, 64, 65, 200)] == [64, 64, 64, 64, 128, 256]
     made = lambda: EXECUTABLES.compiled + EXECUTABLES.loaded

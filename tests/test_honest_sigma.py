@@ -18,7 +18,7 @@ from cohflash_jax.status import Status
 
 SIDE = 48
 # reconstructed a band of rows at a time: 768 pixels, compiled for a short compile
-# (`runtime.QUICK_COMPILE_MAX_PIXELS`), the same per-pixel fits and claims
+# (`tiling.QUICK_COMPILE_MAX_PIXELS`), the same per-pixel fits and claims
 BAND = 16
 
 

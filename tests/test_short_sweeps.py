@@ -378,8 +378,8 @@ def test_a_short_sweep_is_streamed_in_tiles_of_many_rows_to_the_same_bits(tmp_pa
     pixel: a 70-row, 35-frame capture in one tile and in 32-row tiles gives the same bits."""
     from cohflash_jax.capture import Capture
     from cohflash_jax.reconstruct import reconstruct_capture
-    from cohflash_jax.reconstruct.policy import TILE_FRAME_BYTES
     from cohflash_jax.simulate import simulate_to_file
+    from cohflash_jax.tiling import TILE_FRAME_BYTES
 
     auto = ReconstructOptions(progress=False)
     assert auto.rows_per_tile((3000, 256, 320)) == 32

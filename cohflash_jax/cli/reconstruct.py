@@ -13,11 +13,10 @@ from ..estimate.drift import CARRIER_ALIGNMENTS
 from ..reconstruct.policy import (
     DEFAULT_MAX_FIT_CHI2,
     DEFAULT_SNR_THRESHOLD_DB,
-    DEFAULT_TILE_ROWS,
-    TILE_FRAME_BYTES,
     ReconstructOptions,
 )
 from ..status import Status
+from ..tiling import DEFAULT_TILE_ROWS, TILE_FRAME_BYTES
 from .common import HelpFormatter, add_quiet, add_scheduler_options, number_in, provenance, range_mm
 
 

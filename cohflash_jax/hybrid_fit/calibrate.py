@@ -15,8 +15,9 @@ from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..estimate.drift import initial_common_drift
 from ..estimate.iq import align_carrier_static, derotate, iq_from_frames
 from ..hybrid import Hybrid
-from ..runtime import QUICK_COMPILE_MAX_PIXELS, async_filter_jit, quick_compile
+from ..runtime import async_filter_jit, quick_compile
 from ..status import Status
+from ..tiling import QUICK_COMPILE_MAX_PIXELS
 from .common import MIN_FRAMES, MIN_PIXELS, Estimate, tone_sequences
 from .hybrid_stage import common_carrier, fit_hybrid, fit_offsets, pixel_statistics
 from .modulator_stage import exact_model_depths_m, fit_modulator
@@ -124,7 +125,7 @@ def calibrate_hybrid(
     Returns {"document": JSON-able dict, "maps": {name: array} (may be empty)}.
 
     The fits run on at most `max_pixels` selected pixels, a few times each: where those are
-    few (`runtime.QUICK_COMPILE_MAX_PIXELS`), compiling their programs is most of a first run,
+    few (`tiling.QUICK_COMPILE_MAX_PIXELS`), compiling their programs is most of a first run,
     so they are compiled for a short compile (the survey of the whole capture decides for
     itself, by its size)."""
     from ..reconstruct import ReconstructOptions, reconstruct_array, reconstruct_capture

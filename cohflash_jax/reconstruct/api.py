@@ -20,7 +20,8 @@ from ..estimate.drift import CarrierAlignment, choose_carrier_alignment
 from ..fisher import crlb_at_unit_snr_m
 from ..instrument import Instrument
 from ..progress import progress_bar
-from ..runtime import EXECUTABLES, QUICK_COMPILE_MAX_PIXELS, quick_compile, retain_freed_memory
+from ..runtime import EXECUTABLES, quick_compile, retain_freed_memory
+from ..tiling import QUICK_COMPILE_MAX_PIXELS
 from .engine import BlockReader, PieceReader, TileDispatcher, TilePieces, sub_tile_pixels
 from .plan import TilePlan, build_plan, frequency_path
 from .policy import ReconstructOptions

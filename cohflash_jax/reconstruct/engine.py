@@ -20,48 +20,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import early_read, tiling
 from ..capture import Capture
-from ..process import take_prefaulted
-from ..runtime import EXECUTABLES, QUICK_COMPILE_MAX_PIXELS, device_value, place_on_devices, stream_devices
+from ..runtime import EXECUTABLES, device_value, place_on_devices, stream_devices
+from ..tiling import BUFFER_ALIGNMENT_BYTES, QUICK_COMPILE_MAX_PIXELS
 from .plan import TilePlan, program_plan
 from .programs import inversion_plan, prepare_stages, process_stages
 
-# CPU: the uint16 frames of a sub-tile (4·N·2 bytes a pixel) fit in ~12 MiB, so its I/Q,
-# moment and FFT passes run from cache; a tile gives at least `MIN_PIECES` sub-tiles to overlap
-# reads and copies with compute; at most `MAX_SUB_TILE_PIXELS` (short sweeps would otherwise
-# give a few huge pieces, and a vmapped fit runs as long as its slowest pixel).
-SUB_TILE_CACHE_BYTES = 12 * 2**20
-MIN_PIECES = 4
-MIN_SUB_TILE_PIXELS = 256
-MAX_SUB_TILE_PIXELS = 8192
-# GPU: the whole tile a piece (per-dispatch overhead dominates small pieces), up to this much
-# of frames (a 32-row tile of 3000 frames is 245 MB; its float intermediates take several times that)
-DEVICE_PIECE_BYTES = 256 * 2**20
-BUFFER_ALIGNMENT_BYTES = 64  # JAX aliases (does not copy) host buffers aligned so on the CPU
-
-
-# A capture smaller than a sub-tile is padded to a power of two of at least this many pixels:
-# regions of interest of different sizes then share compiled programs (one per bucket, not
-# one per pixel count), for at most twice the compute of a capture that is small anyway
-MIN_PIXEL_BUCKET = 64
-
-
-def pixel_bucket(num_pixels: int) -> int:
-    """The padded pixel count of a small capture: the next power of two, at least `MIN_PIXEL_BUCKET`."""
-    return max(MIN_PIXEL_BUCKET, 1 << (max(1, num_pixels) - 1).bit_length())
-
 
 def sub_tile_pixels(num_pixels: int, num_frames: int, platform: str | None = None) -> int:
-    """Pixels per dispatched sub-tile on `platform` (default: JAX's default backend); a capture
-    smaller than one sub-tile is padded to its `pixel_bucket`. On a GPU, where a piece is the
-    whole tile, a region of interest (`runtime.QUICK_COMPILE_MAX_PIXELS`) is padded alike, so
-    its neighbours in size run its programs there too."""
-    if (platform or jax.default_backend()) != "cpu":
-        pixels = pixel_bucket(num_pixels) if num_pixels <= QUICK_COMPILE_MAX_PIXELS else num_pixels
-        return int(max(1, min(pixels, DEVICE_PIECE_BYTES // (8 * max(1, num_frames)))))
-    by_memory = SUB_TILE_CACHE_BYTES // (8 * max(1, num_frames))
-    limit = min(by_memory, MAX_SUB_TILE_PIXELS, max(MIN_SUB_TILE_PIXELS, -(-num_pixels // MIN_PIECES)))
-    return int(max(1, min(pixel_bucket(num_pixels), limit)))
+    """`tiling.sub_tile_pixels` on `platform` (default: JAX's default backend)."""
+    return tiling.sub_tile_pixels(num_pixels, num_frames, platform or jax.default_backend())
 
 
 def aligned_copy(view: np.ndarray, width: int) -> np.ndarray:
@@ -80,10 +49,10 @@ def aligned_copy(view: np.ndarray, width: int) -> np.ndarray:
 
 def tile_buffer(shape: tuple, dtype) -> np.ndarray:
     """A zeroed C-contiguous array for tiles read from a capture: in the memory a `cohflash
-    reconstruct` process mapped while it imported (`process.take_prefaulted`) where there is
+    reconstruct` process mapped while it imported (`early_read.take_mapping`) where there is
     such memory and it is large enough, else newly allocated."""
     nbytes = math.prod(shape) * np.dtype(dtype).itemsize
-    mapping = take_prefaulted(nbytes)
+    mapping = early_read.take_mapping(nbytes)
     if mapping is None:
         return np.zeros(shape, dtype)
     return np.frombuffer(mapping, np.uint8, count=nbytes).view(dtype).reshape(shape)
@@ -244,22 +213,6 @@ def shape_and_type(arr) -> tuple:
     return piece.shape, np.dtype(piece.dtype)
 
 
-def piece_rows(rows: int, num_frames: int, width: int) -> int | None:
-    """Rows per sub-tile where a tile of `rows` rows is read straight into its sub-tiles
-    (`PieceReader`), on the CPU, for a tile of at least `MIN_PIECES` sub-tiles: the most whole
-    rows within `sub_tile_pixels`' size that divide the tile, and at least half that size; None
-    where no such number is (a piece of one row would be far smaller than a sub-tile: the tile
-    is read whole and its sub-tiles copied) or the tile is smaller (a region of interest keeps
-    its `pixel_bucket`, and the programs its neighbours in size run)."""
-    if jax.default_backend() != "cpu":
-        return None
-    sub = sub_tile_pixels(rows * width, num_frames)
-    if rows * width < MIN_PIECES * sub:
-        return None
-    fits = [k for k in range(1, rows + 1) if rows % k == 0 and k * width <= sub]
-    return fits[-1] if fits and 2 * fits[-1] * width >= sub and fits[-1] < rows else None
-
-
 class TileBuffers:
     """Reused buffers that row tiles are read into, at most two: a tile whose buffer is still
     aliased by dispatched work (`hold_last`) keeps it, and the next tile goes into the other
@@ -302,13 +255,12 @@ class PieceReader(TileBuffers):
         self.dtype = capture.frames.dtype
         self.sub = rows_per_piece * w
         self.piece_shape = (4, n, self.sub)
-        nbytes = math.prod(self.piece_shape) * self.dtype.itemsize
-        self.stride = -(-nbytes // BUFFER_ALIGNMENT_BYTES) * BUFFER_ALIGNMENT_BYTES
+        self.stride = tiling.piece_stride_bytes(n, self.sub, self.dtype.itemsize)
 
     @classmethod
     def of(cls, capture: Capture, rows: int) -> PieceReader | None:
         n, _, w = capture.shape
-        rows_per_piece = piece_rows(rows, n, w)
+        rows_per_piece = tiling.piece_rows(rows, n, w, jax.default_backend())
         small = capture.shape[1] * w <= QUICK_COMPILE_MAX_PIXELS  # a region of interest: its bucket
         if rows_per_piece is None or small or capture.store != "hdf5" or capture.direct_reader is None:
             return None
@@ -320,12 +272,7 @@ class PieceReader(TileBuffers):
         tables; None where the capture cannot scatter into them."""
         count = self.rows // self.rows_per_piece
         raw = tile_buffer((count * self.stride + BUFFER_ALIGNMENT_BYTES,), np.uint8)
-        start = -raw.ctypes.data % BUFFER_ALIGNMENT_BYTES
-        size = math.prod(self.piece_shape) * self.dtype.itemsize
-        pieces = [
-            raw[start + k * self.stride : start + k * self.stride + size].view(self.dtype).reshape(self.piece_shape)
-            for k in range(count)
-        ]
+        start, pieces = tiling.tile_pieces(raw, count, self.stride, self.piece_shape, self.dtype)
         tables = self.capture.scatter_tables(pieces, self.rows, self.rows_per_piece)
         if tables is None:
             return None
@@ -343,12 +290,23 @@ class PieceReader(TileBuffers):
     def read(self, r0: int) -> TilePieces:
         r1 = min(self.h, r0 + self.rows)
         tile, tables = self.free_buffer()
+        if r0 == 0 and self.first_tile_read_early(tile):
+            return tile
         if r1 - r0 < self.rows:  # pad the last tile so every tile has one compiled shape
             rows_read = (r1 - r0) * self.sub // self.rows_per_piece
             for k, piece in enumerate(tile.pieces):
                 piece[..., max(0, min(self.sub, rows_read - k * self.sub)) :] = 0
         self.capture.read_tile_into_pieces(tile.pieces, tables, slice(r0, r1))
         return tile
+
+    def first_tile_read_early(self, tile: TilePieces) -> bool:
+        """Whether `tile`, the first buffer, holds the capture's first tile already: read there,
+        in this layout, by the child this process forked as it started (`early_read`)."""
+        if tile is not self.buffers[0][0]:
+            return False
+        n, h, w = self.capture.shape
+        layout = early_read.layout_key((n, h, w), self.dtype, self.rows, self.rows_per_piece, self.stride)
+        return early_read.holds_first_tile(self.capture.direct_reader.fd, layout, tile.pieces[0].ctypes.data)
 
 
 class BlockReader(TileBuffers):

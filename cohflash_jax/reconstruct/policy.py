@@ -14,6 +14,7 @@ from ..estimate.detection import DEFAULT_FALSE_ALARM
 from ..estimate.drift import CARRIER_ALIGNMENTS
 from ..estimate.iq import DRIFT_WINDOW_FRAMES
 from ..status import Status
+from ..tiling import rows_per_tile
 
 DEFAULT_SNR_THRESHOLD_DB = 14.0
 # Reduced χ² of the ML fit above which the model does not describe the pixel (measured:
@@ -26,11 +27,6 @@ MAX_FIT_EXCURSION_BINS = 2.0
 DEFAULT_WINDOW_BINS = 17
 DEFAULT_MAX_STEPS = 16
 DEFAULT_TRACK_WINDOW_FRAMES = DRIFT_WINDOW_FRAMES
-DEFAULT_TILE_ROWS = 32  # = the capture writer's chunk rows: each chunk is read once
-# A streamed tile holds more than `DEFAULT_TILE_ROWS` rows where its frames stay within this:
-# a short sweep's whole frame (the 10 Hz mode: 23 MB) is one tile, dispatched in sub-tiles of
-# the full size (`engine.sub_tile_pixels`) instead of 32-row pieces of a quarter of it
-TILE_FRAME_BYTES = 64 * 2**20
 
 
 def snr_threshold_margin(num_frames: int) -> float:
@@ -100,14 +96,8 @@ class ReconstructOptions:
 
     def rows_per_tile(self, shape: tuple[int, int, int], itemsize: int = 2) -> int:
         """Rows per streamed tile of a capture of `shape` (frames, height, width) stored with
-        `itemsize` bytes a value: `tile_rows` where given, else whole multiples of
-        `DEFAULT_TILE_ROWS` (the writer's chunk rows) holding at most `TILE_FRAME_BYTES` of
-        frames, at least one; never more than the height."""
-        n, h, w = shape
-        if self.tile_rows is not None:
-            return min(self.tile_rows, h)
-        chunk_bytes = 4 * n * w * itemsize * DEFAULT_TILE_ROWS
-        return min(h, DEFAULT_TILE_ROWS * max(1, TILE_FRAME_BYTES // max(1, chunk_bytes)))
+        `itemsize` bytes a value (`tiling.rows_per_tile`, with these options' `tile_rows`)."""
+        return rows_per_tile(shape, itemsize, self.tile_rows)
 
 
 class ValidityPolicy(eqx.Module):

@@ -1,0 +1,233 @@
+"""A `cohflash reconstruct` capture's first tile, read while the process imports.
+
+A warm full-capture run spends its first ~0.6 s importing JAX and the package on one core, and
+then read its first tile (0.1–0.2 s) on one core before any program could run. Here, as the
+package starts importing (no thread exists yet), the process maps the memory its first tile
+buffer needs, shared, and forks a child: with an interpreter lock of its own, the child
+touches those pages and reads the first tile into them, laid out as `engine.PieceReader` will
+lay out its first buffer there (`tiling`), while the parent imports on the other core. The
+reader takes the tile as read (`holds_first_tile`) where the child read the same file,
+unchanged, into the same layout at the same address; anything else (a Zarr store, a
+compressed or HDF5-filled capture, another tile size, a GPU's tiles) finds the memory touched
+and reads as before. The child only reads: the capture is validated by the parent, as always.
+
+Standard library only until the child runs (the package imports this module before NumPy and
+JAX). Measured: docs/performance.md.
+"""
+
+from __future__ import annotations
+
+import json
+import mmap
+import os
+import select
+import signal
+import sys
+
+from .process import cli_command, cli_input_path
+
+# The commands whose first tile is read early, and the most memory mapped for it: a full
+# capture's first tile of 32 rows (4 × 3000 frames × 32 × 320 px × 2 bytes = 246 MB) fits; a
+# larger tile is read as before
+EARLY_READ_COMMANDS = ("reconstruct",)
+EARLY_READ_MAX_BYTES = 256 * 2**20
+# Options with which the tiles are read elsewhere: a registered capture's are resampled into
+# buffers of their own, a Dask run's are read by its workers
+READ_ELSEWHERE_OPTIONS = ("--registration", "--scheduler")
+# The longest the parent waits for the child's report before it stops it and reads itself
+CHILD_WAIT_S = 60.0
+# madvise(2): fault every page of a range in, writable (Linux 5.14); older kernels refuse it,
+# and the read then faults the pages in as it goes
+MADV_POPULATE_WRITE = 23
+
+# "mapping"; "child": (pid, report pipe) until waited for; then its "report"; then the "outcome"
+_EARLY: dict = {}
+
+
+def start_for_cli(argv) -> bool:
+    """Where this interpreter runs `cohflash reconstruct` on a capture file (`cli_input_path`),
+    map as much shared memory as its first tile can need (the file's size, at most
+    `EARLY_READ_MAX_BYTES`) and fork the child that fills it (`read_first_tile`). Called by the
+    package before it imports anything else. Returns whether a child started."""
+    path = cli_input_path(argv)
+    elsewhere = any(a.startswith(READ_ELSEWHERE_OPTIONS) for a in argv)
+    if cli_command(argv) not in EARLY_READ_COMMANDS or path is None or elsewhere or "mapping" in _EARLY:
+        return False
+    if not hasattr(os, "fork") or not sys.platform.startswith("linux"):
+        return False
+    try:
+        nbytes = min(os.path.getsize(path), EARLY_READ_MAX_BYTES)
+        mapping = mmap.mmap(-1, nbytes, flags=mmap.MAP_SHARED | mmap.MAP_ANONYMOUS) if nbytes > 0 else None
+    except (OSError, ValueError):  # no memory for it: the tile is allocated as usual
+        return False
+    if mapping is None:
+        return False
+    report_fd, child_fd = os.pipe()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    try:
+        pid = os.fork()
+    except OSError:
+        os.close(report_fd)
+        os.close(child_fd)
+        mapping.close()
+        return False
+    if pid == 0:  # the child: never returns
+        os.close(report_fd)
+        run_child(mapping, path, tile_rows_option(argv), child_fd)
+    os.close(child_fd)
+    _EARLY.update(mapping=mapping, child=(pid, report_fd))
+    return True
+
+
+def tile_rows_option(argv) -> int | None:
+    """The `--tile-rows` a command line gives (None where none, or not a number: the parent's
+    parser then says so, and the layouts differ)."""
+    for k, arg in enumerate(argv):
+        value = arg.split("=", 1)[1] if arg.startswith("--tile-rows=") else None
+        if arg == "--tile-rows" and k + 1 < len(argv):
+            value = argv[k + 1]
+        if value is not None:
+            try:
+                return int(value)
+            except ValueError:
+                return None
+    return None
+
+
+def run_child(mapping: mmap.mmap, path: str, tile_rows: int | None, report_fd: int):
+    """The child: its standard streams on /dev/null, its pages touched, the first tile read,
+    then its report (`read_first_tile`'s, as JSON) written to the parent and the child gone
+    (`os._exit`: none of the parent's exit handlers run twice)."""
+    report = {"read": False}
+    try:
+        quiet = os.open(os.devnull, os.O_RDWR)
+        for fd in (0, 1, 2):
+            os.dup2(quiet, fd)
+        os.environ["OPENBLAS_NUM_THREADS"] = "1"  # NumPy's import here would start its BLAS's threads
+        try:
+            mapping.madvise(MADV_POPULATE_WRITE)
+        except (OSError, ValueError, AttributeError):
+            pass
+        report = read_first_tile(mapping, path, tile_rows)
+    except BaseException as exc:  # a report, whatever happened: the parent reads as before
+        report = {"read": False, "why": f"{type(exc).__name__}: {exc}"}
+    finally:
+        try:
+            os.write(report_fd, json.dumps(report).encode())
+        finally:
+            os._exit(0)
+
+
+def file_identity(fd: int) -> list[int]:
+    """What tells a file apart and changes when it is written: device, inode, size, times."""
+    st = os.fstat(fd)
+    return [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns]
+
+
+def layout_key(shape: tuple[int, int, int], dtype, rows: int, rows_per_piece: int, stride: int) -> list:
+    """A first tile's layout as the child reports it and `engine.PieceReader` compares it:
+    the capture's (N, H, W) and dtype, the tile's rows, the rows a piece, the pieces' stride."""
+    return [*map(int, shape), str(dtype), int(rows), int(rows_per_piece), int(stride)]
+
+
+def read_first_tile(mapping: mmap.mmap, path: str, tile_rows: int | None = None) -> dict:
+    """Read the first tile of the capture at `path` into `mapping` as `engine.PieceReader`
+    lays out its first buffer there on the CPU (`tiling`): {"read": True, "file":
+    `file_identity`, "layout": `layout_key`, "address": the first piece's address}, or
+    {"read": False, "why": …} where it cannot (the parent then reads as before)."""
+    import h5py
+    import numpy as np
+
+    from . import tiling
+    from .chunk_reads import ChunkIndexError, DirectChunkReader
+
+    try:
+        with h5py.File(path, "r") as f:
+            frames = f.get("frames")
+            if not isinstance(frames, h5py.Dataset) or frames.ndim != 4 or frames.shape[0] != 4:
+                return {"read": False, "why": "no (4, N, H, W) frames dataset"}
+            dtype = frames.dtype
+            reader = DirectChunkReader(frames, path)
+    except ChunkIndexError as exc:
+        return {"read": False, "why": str(exc)}
+    try:
+        _, n, h, w = reader.shape
+        rows = tiling.rows_per_tile((n, h, w), dtype.itemsize, tile_rows)
+        rows_per_piece = tiling.piece_rows(rows, n, w, "cpu")
+        if rows_per_piece is None or h * w <= tiling.QUICK_COMPILE_MAX_PIXELS:
+            return {"read": False, "why": "its tiles are not read in pieces"}
+        if not reader.covers(slice(0, rows)) or not reader.scatters(rows, rows_per_piece):
+            return {"read": False, "why": "its chunks cannot be scattered into pieces"}
+        sub = rows_per_piece * w
+        stride = tiling.piece_stride_bytes(n, sub, dtype.itemsize)
+        count = rows // rows_per_piece
+        if len(mapping) < count * stride + tiling.BUFFER_ALIGNMENT_BYTES:
+            return {"read": False, "why": "the tile is larger than the memory mapped"}
+        raw = np.frombuffer(mapping, np.uint8)
+        _, pieces = tiling.tile_pieces(raw, count, stride, (4, n, sub), dtype)
+        before = file_identity(reader.fd)
+        reader.read_rows_into_pieces(reader.scatter_table(pieces, rows, rows_per_piece), slice(0, rows))
+        if file_identity(reader.fd) != before:
+            return {"read": False, "why": "the file changed while it was read"}
+        layout = layout_key((n, h, w), dtype, rows, rows_per_piece, stride)
+        return {"read": True, "file": before, "layout": layout, "address": pieces[0].ctypes.data}
+    finally:
+        reader.close()
+
+
+def take_mapping(nbytes: int):
+    """The shared memory `start_for_cli` mapped (zeroed or holding the first tile, writable,
+    page-aligned), once, where it holds `nbytes`; else None (and it is let go). Waits for the
+    child's report first, so that nothing writes the memory once it is taken."""
+    wait_for_child()
+    mapping = _EARLY.pop("mapping", None)
+    if mapping is not None and len(mapping) >= nbytes:
+        return mapping
+    if "report" in _EARLY:  # a tile in memory let go is no use
+        _EARLY["outcome"] = {"report": _EARLY.pop("report"), "held": False}
+    return None
+
+
+def wait_for_child(timeout_s: float = CHILD_WAIT_S) -> None:
+    """Read the child's report (at most `timeout_s`; a child still reading then is stopped) and
+    let it go."""
+    child = _EARLY.pop("child", None)
+    if child is None:
+        return
+    pid, report_fd = child
+    chunks = []
+    try:
+        while select.select([report_fd], [], [], timeout_s)[0]:
+            chunk = os.read(report_fd, 65536)
+            if not chunk:
+                break
+            chunks.append(chunk)
+        else:
+            os.kill(pid, signal.SIGKILL)
+    finally:
+        os.close(report_fd)
+        os.waitpid(pid, 0)
+    try:
+        _EARLY["report"] = json.loads(b"".join(chunks) or b"{}")
+    except ValueError:
+        _EARLY["report"] = {}
+
+
+def holds_first_tile(fd: int, layout: list, address: int) -> bool:
+    """Whether the memory taken (`take_mapping`) holds the first tile of the file open as `fd`,
+    laid out as `layout` (`layout_key`) from `address`: the child read that file, unchanged
+    since, so. Asked once: the report is let go (False where there is none)."""
+    if "report" not in _EARLY:
+        return False
+    report = _EARLY.pop("report")
+    held = bool(report.get("read")) and report.get("layout") == layout and report.get("address") == address
+    held = held and report.get("file") == file_identity(fd)
+    _EARLY["outcome"] = {"report": report, "held": held}
+    return held
+
+
+def outcome() -> dict | None:
+    """What became of this process's early read once a reader asked (`holds_first_tile`): the
+    child's report and whether its tile was taken; None before (for tests and diagnostics)."""
+    return _EARLY.get("outcome")
