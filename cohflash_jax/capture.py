@@ -23,6 +23,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from . import early_read
 from .chunk_reads import ChunkIndexError, DirectChunkReader
 from .fileio import atomic_path, is_store_folder
 from .hybrid import NOMINAL_PHASES_RAD, Hybrid
@@ -469,7 +470,8 @@ class Capture:
         """The frames' `DirectChunkReader` (made on first use), or None where their chunks
         must be read through HDF5 (compressed, cutting rows, unwritten)."""
         try:
-            return DirectChunkReader(self._file["frames"], self.path)
+            # the index a `cohflash reconstruct` process's child listed, where it did (`early_read`)
+            return DirectChunkReader(self._file["frames"], self.path, known=early_read.known_chunk_index())
         except ChunkIndexError:
             return None
 

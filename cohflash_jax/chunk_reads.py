@@ -17,6 +17,8 @@ import os
 import h5py
 import numpy as np
 
+from .early_read import file_identity
+
 # struct iovec {void *iov_base; size_t iov_len;}, as `preadv` takes an array of them
 IOVEC = np.dtype([("base", np.uintp), ("length", np.uintp)])
 
@@ -47,9 +49,13 @@ class ChunkIndexError(ValueError):
 class DirectChunkReader:
     """File offsets of every chunk of a (4, N, H, W) frames dataset whose chunks are
     (1, frames_per_chunk, rows_per_chunk, W), and `read_rows_into`, which reads a band of
-    whole chunk rows into a (4, N, ≥rows, W) buffer with one `preadv` per chunk."""
+    whole chunk rows into a (4, N, ≥rows, W) buffer with one `preadv` per chunk.
 
-    def __init__(self, dataset: h5py.Dataset, path: os.PathLike):
+    `known`: (`early_read.file_identity`, offsets) of the same dataset, listed by another
+    process (a `cohflash reconstruct` process's child): taken where the file opened here is
+    that file, unchanged, instead of listing the chunks again."""
+
+    def __init__(self, dataset: h5py.Dataset, path: os.PathLike, known: tuple | None = None):
         shape, chunks = dataset.shape, dataset.chunks
         if not hasattr(os, "preadv"):  # e.g. Windows
             raise ChunkIndexError("this system has no preadv")
@@ -63,23 +69,32 @@ class DirectChunkReader:
         if not dataset.dtype.isnative:
             raise ChunkIndexError(f"frames are stored {dataset.dtype.str}, not in this machine's byte order")
         self.shape, self.chunks, self.itemsize = shape, chunks, dataset.dtype.itemsize
+        grid = (4, -(-shape[1] // chunks[1]), -(-shape[2] // chunks[2]))  # CCD, frame chunk, band
+        self.fd = os.open(path, os.O_RDONLY)
+        if known is not None and known[0] == file_identity(self.fd) and known[1].shape == grid:
+            self.offsets = known[1]
+            return
         chunk_bytes = int(np.prod(chunks)) * dataset.dtype.itemsize
-        offsets = {}
+        offsets = np.full(grid, -1, np.int64)  # the file offset of chunk (c, g, b)
 
         def visit(info):
             if info.size != chunk_bytes or info.filter_mask:
                 raise ChunkIndexError(f"chunk {info.chunk_offset} is stored in {info.size} bytes")
-            offsets[info.chunk_offset] = info.byte_offset
+            c, n0, r0, _ = info.chunk_offset
+            offsets[c, n0 // chunks[1], r0 // chunks[2]] = info.byte_offset
 
         try:
             dataset.id.chunk_iter(visit)
         except AttributeError:  # HDF5 older than 1.12.3
+            self.close()
             raise ChunkIndexError("this HDF5 cannot list chunks") from None
-        expected = int(np.prod([-(-s // c) for s, c in zip(shape, chunks, strict=True)]))
-        if len(offsets) != expected:
-            raise ChunkIndexError(f"{expected - len(offsets)} chunks were never written (HDF5 fills them)")
+        except ChunkIndexError:
+            self.close()
+            raise
+        if (unwritten := int(np.count_nonzero(offsets < 0))) > 0:
+            self.close()
+            raise ChunkIndexError(f"{unwritten} chunks were never written (HDF5 fills them)")
         self.offsets = offsets
-        self.fd = os.open(path, os.O_RDONLY)
 
     def covers(self, rows: slice) -> bool:
         """Whether rows `rows` are whole bands of chunk rows (the last band may end at H only
@@ -95,11 +110,12 @@ class DirectChunkReader:
         _, n, _, w = self.shape
         r0, r1, _ = rows.indices(self.shape[2])
         _, fc, rc, _ = self.chunks
+        offsets = self.offsets[:, :, r0 // rc : -(-r1 // rc)].tolist()  # (4, frame chunks, bands), as ints
         for c in range(4):
             for g, n0 in enumerate(range(0, n, fc)):
                 k = min(fc, n - n0)  # a last chunk of frames holds fewer than fc frames of data
                 for b, band in enumerate(range(r0, r1, rc)):
-                    yield c, g, n0, k, b, band, self.offsets[(c, n0, band, 0)], k * rc * w * self.itemsize
+                    yield c, g, n0, k, b, band, offsets[c][g][b], k * rc * w * self.itemsize
 
     @staticmethod
     def check_read(got: int, want: int, chunk: tuple) -> None:

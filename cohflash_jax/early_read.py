@@ -17,11 +17,13 @@ JAX). Measured: docs/performance.md.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import mmap
 import os
 import select
 import signal
+import struct
 import sys
 
 from .process import cli_command, cli_input_path
@@ -39,6 +41,10 @@ CHILD_WAIT_S = 60.0
 # madvise(2): fault every page of a range in, writable (Linux 5.14); older kernels refuse it,
 # and the read then faults the pages in as it goes
 MADV_POPULATE_WRITE = 23
+# The child's report begins with the length of its JSON part; the pipe it goes through is
+# made this large (Linux's default most for a user: a full capture's index is 768 kB)
+REPORT_HEADER = struct.Struct("<Q")
+REPORT_PIPE_BYTES = 2**20
 
 # "mapping"; "child": (pid, report pipe) until waited for; then its "report"; then the "outcome"
 _EARLY: dict = {}
@@ -63,6 +69,10 @@ def start_for_cli(argv) -> bool:
     if mapping is None:
         return False
     report_fd, child_fd = os.pipe()
+    try:  # room for the whole report, chunk index and all, so the child never waits to write it
+        fcntl.fcntl(child_fd, getattr(fcntl, "F_SETPIPE_SZ", 1031), REPORT_PIPE_BYTES)
+    except OSError:  # more than the system lets a pipe hold: the child writes as it is read
+        pass
     sys.stdout.flush()
     sys.stderr.flush()
     try:
@@ -97,8 +107,9 @@ def tile_rows_option(argv) -> int | None:
 
 def run_child(mapping: mmap.mmap, path: str, tile_rows: int | None, report_fd: int):
     """The child: its standard streams on /dev/null, its pages touched, the first tile read,
-    then its report (`read_first_tile`'s, as JSON) written to the parent and the child gone
-    (`os._exit`: none of the parent's exit handlers run twice)."""
+    then its report (`read_first_tile`'s) written to the parent (`REPORT_HEADER`: the length
+    of its JSON, the JSON, then the chunk index's bytes) and the child gone (`os._exit`: none
+    of the parent's exit handlers run twice)."""
     report = {"read": False}
     try:
         quiet = os.open(os.devnull, os.O_RDWR)
@@ -114,7 +125,13 @@ def run_child(mapping: mmap.mmap, path: str, tile_rows: int | None, report_fd: i
         report = {"read": False, "why": f"{type(exc).__name__}: {exc}"}
     finally:
         try:
-            os.write(report_fd, json.dumps(report).encode())
+            index = report.pop("index", None)
+            if index is not None:
+                report["index_shape"] = list(index.shape)
+            header = json.dumps(report).encode()
+            data = memoryview(REPORT_HEADER.pack(len(header)) + header + (b"" if index is None else index.tobytes()))
+            while data:
+                data = data[os.write(report_fd, data) :]
         finally:
             os._exit(0)
 
@@ -135,11 +152,11 @@ def read_first_tile(mapping: mmap.mmap, path: str, tile_rows: int | None = None)
     """Read the first tile of the capture at `path` into `mapping` as `engine.PieceReader`
     lays out its first buffer there on the CPU (`tiling`): {"read": True, "file":
     `file_identity`, "layout": `layout_key`, "address": the first piece's address}, or
-    {"read": False, "why": …} where it cannot (the parent then reads as before)."""
+    {"read": False, "why": …} where it cannot (the parent then reads as before); with the
+    frames' chunk index where it was listed ("index": `DirectChunkReader.offsets`, of the
+    file "file"), which the parent's reader then takes instead of listing it again."""
     import h5py
-    import numpy as np
 
-    from . import tiling
     from .chunk_reads import ChunkIndexError, DirectChunkReader
 
     try:
@@ -151,29 +168,39 @@ def read_first_tile(mapping: mmap.mmap, path: str, tile_rows: int | None = None)
             reader = DirectChunkReader(frames, path)
     except ChunkIndexError as exc:
         return {"read": False, "why": str(exc)}
+    listed = {"file": file_identity(reader.fd), "index": reader.offsets}
     try:
-        _, n, h, w = reader.shape
-        rows = tiling.rows_per_tile((n, h, w), dtype.itemsize, tile_rows)
-        rows_per_piece = tiling.piece_rows(rows, n, w, "cpu")
-        if rows_per_piece is None or h * w <= tiling.QUICK_COMPILE_MAX_PIXELS:
-            return {"read": False, "why": "its tiles are not read in pieces"}
-        if not reader.covers(slice(0, rows)) or not reader.scatters(rows, rows_per_piece):
-            return {"read": False, "why": "its chunks cannot be scattered into pieces"}
-        sub = rows_per_piece * w
-        stride = tiling.piece_stride_bytes(n, sub, dtype.itemsize)
-        count = rows // rows_per_piece
-        if len(mapping) < count * stride + tiling.BUFFER_ALIGNMENT_BYTES:
-            return {"read": False, "why": "the tile is larger than the memory mapped"}
-        raw = np.frombuffer(mapping, np.uint8)
-        _, pieces = tiling.tile_pieces(raw, count, stride, (4, n, sub), dtype)
-        before = file_identity(reader.fd)
-        reader.read_rows_into_pieces(reader.scatter_table(pieces, rows, rows_per_piece), slice(0, rows))
-        if file_identity(reader.fd) != before:
-            return {"read": False, "why": "the file changed while it was read"}
-        layout = layout_key((n, h, w), dtype, rows, rows_per_piece, stride)
-        return {"read": True, "file": before, "layout": layout, "address": pieces[0].ctypes.data}
+        return listed | read_into(mapping, reader, dtype, tile_rows)
     finally:
         reader.close()
+
+
+def read_into(mapping: mmap.mmap, reader, dtype, tile_rows: int | None) -> dict:
+    """`read_first_tile`'s read, with the frames' `DirectChunkReader` (`reader`)."""
+    import numpy as np
+
+    from . import tiling
+
+    _, n, h, w = reader.shape
+    rows = tiling.rows_per_tile((n, h, w), dtype.itemsize, tile_rows)
+    rows_per_piece = tiling.piece_rows(rows, n, w, "cpu")
+    if rows_per_piece is None or h * w <= tiling.QUICK_COMPILE_MAX_PIXELS:
+        return {"read": False, "why": "its tiles are not read in pieces"}
+    if not reader.covers(slice(0, rows)) or not reader.scatters(rows, rows_per_piece):
+        return {"read": False, "why": "its chunks cannot be scattered into pieces"}
+    sub = rows_per_piece * w
+    stride = tiling.piece_stride_bytes(n, sub, dtype.itemsize)
+    count = rows // rows_per_piece
+    if len(mapping) < count * stride + tiling.BUFFER_ALIGNMENT_BYTES:
+        return {"read": False, "why": "the tile is larger than the memory mapped"}
+    raw = np.frombuffer(mapping, np.uint8)
+    _, pieces = tiling.tile_pieces(raw, count, stride, (4, n, sub), dtype)
+    before = file_identity(reader.fd)
+    reader.read_rows_into_pieces(reader.scatter_table(pieces, rows, rows_per_piece), slice(0, rows))
+    if file_identity(reader.fd) != before:
+        return {"read": False, "why": "the file changed while it was read"}
+    layout = layout_key((n, h, w), dtype, rows, rows_per_piece, stride)
+    return {"read": True, "file": before, "layout": layout, "address": pieces[0].ctypes.data}
 
 
 def take_mapping(nbytes: int):
@@ -199,7 +226,7 @@ def wait_for_child(timeout_s: float = CHILD_WAIT_S) -> None:
     chunks = []
     try:
         while select.select([report_fd], [], [], timeout_s)[0]:
-            chunk = os.read(report_fd, 65536)
+            chunk = os.read(report_fd, REPORT_PIPE_BYTES)
             if not chunk:
                 break
             chunks.append(chunk)
@@ -208,10 +235,34 @@ def wait_for_child(timeout_s: float = CHILD_WAIT_S) -> None:
     finally:
         os.close(report_fd)
         os.waitpid(pid, 0)
+    _EARLY["report"] = parse_report(b"".join(chunks))
+    if "index" in _EARLY["report"]:
+        _EARLY["index"] = (_EARLY["report"]["file"], _EARLY["report"].pop("index"))
+
+
+def parse_report(data: bytes) -> dict:
+    """The child's report from its bytes (`run_child`): {} where they are cut short or garbled
+    (a child stopped or killed); its chunk index, where it sent one, as "index"."""
+    import numpy as np
+
     try:
-        _EARLY["report"] = json.loads(b"".join(chunks) or b"{}")
-    except ValueError:
-        _EARLY["report"] = {}
+        (length,) = REPORT_HEADER.unpack_from(data)
+        start = REPORT_HEADER.size
+        report = json.loads(data[start : start + length])
+        if "index_shape" in report:
+            shape = tuple(report.pop("index_shape"))
+            index = np.frombuffer(data, np.int64, offset=start + length)
+            report["index"] = index.reshape(shape)  # raises where bytes are missing
+    except (struct.error, ValueError, TypeError):
+        return {}
+    return report if isinstance(report, dict) else {}
+
+
+def known_chunk_index() -> tuple | None:
+    """The frames' chunk index the child listed, as `DirectChunkReader`'s `known` takes it
+    ((the file's `file_identity`, offsets)), once; None where it sent none."""
+    wait_for_child()
+    return _EARLY.pop("index", None)
 
 
 def holds_first_tile(fd: int, layout: list, address: int) -> bool:

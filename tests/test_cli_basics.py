@@ -394,19 +394,40 @@ def _pieceable_capture(path, n=1200, seed=5):
 def test_the_first_tile_read_early_is_laid_out_as_the_reader_lays_it_out(tmp_path):
     """`early_read.read_first_tile` (a `cohflash reconstruct` process's child, run here in
     this process) puts the capture's first tile where `engine.PieceReader` puts it in a buffer
-    at the same place, byte for byte, and reports that layout; a capture whose tiles are not
-    read into pieces (too small, compressed) is left, with the reason, and a `--tile-rows`
-    the command line gives is the one it reads."""
+    at the same place, byte for byte, and reports that layout and the frames' chunk index,
+    which a reader of the same file, unchanged, takes (and lists again otherwise); the report
+    survives its way through the pipe, and a report cut short is none. A capture whose tiles
+    are not read into pieces (too small, compressed) is left, with the reason, and a
+    `--tile-rows` the command line gives is the one it reads."""
     import mmap
 
     from cohflash_jax import early_read
     from cohflash_jax.capture import Capture
+    from cohflash_jax.chunk_reads import DirectChunkReader
     from cohflash_jax.reconstruct.engine import PieceReader
 
     capture = _pieceable_capture(tmp_path / "c.h5")
     mapping = mmap.mmap(-1, 64 * 2**20)
     report = early_read.read_first_tile(mapping, str(capture), 32)
     assert report["read"], report
+    with h5py.File(capture) as f:
+        listed = DirectChunkReader(f["frames"], capture)
+        np.testing.assert_array_equal(report["index"], listed.offsets)
+        assert report["index"].shape == (4, 300, 2) and (report["index"] > 0).all()
+        known = (report["file"], report["index"])
+        taken = DirectChunkReader(f["frames"], capture, known=known)
+        assert taken.offsets is report["index"]
+        stale = DirectChunkReader(f["frames"], capture, known=([0, 0, 0, 0, 0], report["index"] + 1))
+        np.testing.assert_array_equal(stale.offsets, listed.offsets)  # another file's: listed again
+        for reader in (listed, taken, stale):
+            reader.close()
+    sent = {k: v for k, v in report.items() if k != "index"} | {"index_shape": list(report["index"].shape)}
+    header = json.dumps(sent).encode()
+    data = early_read.REPORT_HEADER.pack(len(header)) + header + report["index"].tobytes()
+    back = early_read.parse_report(data)
+    np.testing.assert_array_equal(back.pop("index"), report["index"])
+    assert back == {k: v for k, v in report.items() if k != "index"}
+    assert early_read.parse_report(data[:-8]) == {} and early_read.parse_report(b"") == {}
     with Capture(capture) as c:
         reader = PieceReader.of(c, 32)
         tile = reader.read(0)  # read by the reader itself, into a buffer of its own
@@ -422,7 +443,8 @@ def test_the_first_tile_read_early_is_laid_out_as_the_reader_lays_it_out(tmp_pat
     # a small capture's tiles, and a compressed capture's, are read as before
     small = tmp_path / "small.h5"
     assert main(["simulate", "planar", "--size", "8x8", "--steps", "64", "--out", str(small), "--quiet"]) == 0
-    assert early_read.read_first_tile(mapping, str(small)) == {"read": False, "why": "its tiles are not read in pieces"}
+    said = early_read.read_first_tile(mapping, str(small))
+    assert not said["read"] and said["why"] == "its tiles are not read in pieces"
     packed = tmp_path / "packed.h5"
     with h5py.File(capture) as f, h5py.File(packed, "w") as g:
         g.create_dataset("frames", data=f["frames"][()], chunks=(1, 4, 32, 64), compression="gzip")
