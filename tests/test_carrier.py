@@ -176,3 +176,20 @@ def test_the_carrier_axis_without_trigonometry_is_half_the_angle_of_its_moments(
     np.testing.assert_allclose(c, np.cos(phi), rtol=0, atol=1e-15)
     np.testing.assert_allclose(s, np.sin(phi), rtol=0, atol=1e-15)
     np.testing.assert_allclose(c * c + s * s, 1.0, rtol=0, atol=1e-15)
+
+
+def test_the_surveys_frame_means_are_the_float64_means_exactly():
+    """`drift.frame_means` sums integer frames as integers: the same float64 values as NumPy's
+    float64 mean (whose partial sums are exact integers too), for unsigned and signed 16-bit
+    frames at full scale, 8-bit frames, and float frames (averaged in float64)."""
+    from cohflash_jax.estimate.drift import frame_means
+
+    rng = np.random.default_rng(8)
+    for dtype in (np.uint16, np.int16, np.uint8, np.float32):
+        info = np.iinfo(dtype) if np.issubdtype(dtype, np.integer) else np.finfo(dtype)
+        x = rng.integers(max(info.min, -60000), min(info.max, 60000), (4, 3001, 3, 7), endpoint=True).astype(dtype)
+        x[0, :, 0, 0] = info.max if np.issubdtype(dtype, np.integer) else 65535.0  # a saturated pixel
+        x[1, :, 0, 0] = info.min if np.issubdtype(dtype, np.integer) else -1.5
+        means = frame_means(x)
+        assert means.dtype == np.float64 and means.shape == (4, 3, 7)
+        np.testing.assert_array_equal(means, np.mean(x, axis=1, dtype=np.float64))

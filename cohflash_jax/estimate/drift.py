@@ -147,6 +147,17 @@ class CarrierAlignment:
         return 0.0 if self.phase_rad is None else float(np.std(self.phase_rad))
 
 
+def frame_means(frames) -> np.ndarray:
+    """Each pixel's mean over the frames (axis 1) in float64. Integer frames of up to 16 bits
+    are summed as integers, exactly (the float64 sums of a mean are exact too: the same
+    values), in half the time of a float64 sum, which converts every value first."""
+    n = frames.shape[1]
+    if np.issubdtype(frames.dtype, np.integer) and frames.dtype.itemsize <= 2:
+        wide = np.uint32 if n * np.iinfo(frames.dtype).max < 2**32 and frames.dtype.kind == "u" else np.int64
+        return np.add.reduce(frames, axis=1, dtype=wide) / n
+    return np.mean(frames, axis=1, dtype=np.float64)
+
+
 def pixel_columns(frames, pixels):
     """The frames (4, N, K) of `pixels` (K,) of `frames` (4, N, P), or of (4, N, S, Q): S pieces
     of Q pixels, P = S·Q in row-major order."""
@@ -173,7 +184,7 @@ def choose_carrier_alignment(
     if n <= DRIFT_MIN_WINDOWS * DRIFT_WINDOW_FRAMES:
         return CarrierAlignment("static", f"auto: {n} frames are too few to look for a carrier drift")
     # the strongest mean terms, from the frames' means (I/Q is linear in the frames)
-    means = np.mean(frames, axis=1, dtype=np.float64).reshape(4, 1, -1)  # (4, 1, P)
+    means = frame_means(frames).reshape(4, 1, -1)  # (4, 1, P)
     # in NumPy: a one-off survey, with no programs to compile or load in a fresh process
     pick = lambda a, idx: None if a is None else np.asarray(a, np.float32)[:, idx]
     everywhere = slice(None)
