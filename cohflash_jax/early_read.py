@@ -33,6 +33,9 @@ from .process import cli_command, cli_input_path
 # larger tile is read as before
 EARLY_READ_COMMANDS = ("reconstruct",)
 EARLY_READ_MAX_BYTES = 256 * 2**20
+# A smaller file is read in a few hundredths of a second: a child would cost more than it saves
+# (a region of interest, a 10 Hz capture)
+EARLY_READ_MIN_BYTES = 64 * 2**20
 # Options with which the tiles are read elsewhere: a registered capture's are resampled into
 # buffers of their own, a Dask run's are read by its workers
 READ_ELSEWHERE_OPTIONS = ("--registration", "--scheduler")
@@ -51,10 +54,11 @@ _EARLY: dict = {}
 
 
 def start_for_cli(argv) -> bool:
-    """Where this interpreter runs `cohflash reconstruct` on a capture file (`cli_input_path`),
-    map as much shared memory as its first tile can need (the file's size, at most
-    `EARLY_READ_MAX_BYTES`) and fork the child that fills it (`read_first_tile`). Called by the
-    package before it imports anything else. Returns whether a child started."""
+    """Where this interpreter runs `cohflash reconstruct` on a capture file (`cli_input_path`)
+    of at least `EARLY_READ_MIN_BYTES`, map as much shared memory as its first tile can need
+    (the file's size, at most `EARLY_READ_MAX_BYTES`) and fork the child that fills it
+    (`read_first_tile`). Called by the package before it imports anything else. Returns
+    whether a child started."""
     path = cli_input_path(argv)
     elsewhere = any(a.startswith(READ_ELSEWHERE_OPTIONS) for a in argv)
     if cli_command(argv) not in EARLY_READ_COMMANDS or path is None or elsewhere or "mapping" in _EARLY:
@@ -62,11 +66,11 @@ def start_for_cli(argv) -> bool:
     if not hasattr(os, "fork") or not sys.platform.startswith("linux"):
         return False
     try:
-        nbytes = min(os.path.getsize(path), EARLY_READ_MAX_BYTES)
-        mapping = mmap.mmap(-1, nbytes, flags=mmap.MAP_SHARED | mmap.MAP_ANONYMOUS) if nbytes > 0 else None
+        size = os.path.getsize(path)
+        if size < EARLY_READ_MIN_BYTES:
+            return False
+        mapping = mmap.mmap(-1, min(size, EARLY_READ_MAX_BYTES), flags=mmap.MAP_SHARED | mmap.MAP_ANONYMOUS)
     except (OSError, ValueError):  # no memory for it: the tile is allocated as usual
-        return False
-    if mapping is None:
         return False
     report_fd, child_fd = os.pipe()
     try:  # room for the whole report, chunk index and all, so the child never waits to write it

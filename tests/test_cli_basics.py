@@ -460,16 +460,20 @@ def test_a_reconstruct_process_reads_its_first_tile_while_it_imports(tmp_path):
     """`cohflash reconstruct FILE` forks a child as the package starts importing, which reads
     the first tile into shared memory the tile reader then takes as read: the same depth file
     as a process that reads it itself. A file changed after the child read it is read again
-    (the same depth file). Other commands, a library user's or a test run's process, a Dask run
-    and a registered capture (read elsewhere) fork nothing."""
+    (the same depth file). Other commands, a library user's or a test run's process, a Dask run,
+    a registered capture (read elsewhere) and a small file fork nothing."""
     from cohflash_jax import early_read
 
-    capture = _pieceable_capture(tmp_path / "c.h5")
+    capture = _pieceable_capture(tmp_path / "c.h5", n=2200)  # 72 MB: above `EARLY_READ_MIN_BYTES`
+    assert capture.stat().st_size >= early_read.EARLY_READ_MIN_BYTES
     cli = ["python", "-m", "cohflash_jax.cli", "reconstruct", str(capture), "--out", "d.h5"]
     for argv in (["python", "-m", "pytest"], [*cli[:3], "info", str(capture)], [*cli, "--scheduler", "processes"]):
         assert not early_read.start_for_cli(argv)
     assert not early_read.start_for_cli([*cli, "--registration", str(capture)])
     assert not early_read.start_for_cli(cli[:4] + [str(tmp_path / "missing.h5")])
+    small = tmp_path / "small.h5"  # read in a few hundredths of a second: no child
+    assert main(["simulate", "planar", "--size", "8x8", "--steps", "64", "--out", str(small), "--quiet"]) == 0
+    assert not early_read.start_for_cli(cli[:4] + [str(small)])
     assert early_read.take_mapping(1) is None and early_read.outcome() is None  # nothing started
     probe = (
         "import os, sys\n"
