@@ -380,14 +380,18 @@ def test_a_cohflash_process_collects_no_garbage_while_it_imports(tmp_path):
     assert as_library.stdout.split() == ["True", "True", "False"]
 
 
-def _pieceable_capture(path, n=1200, seed=5):
+def _pieceable_capture(path, n=1200, seed=5, extra_bytes=0):
     """A 64×64 capture from the independent writer, chunked as cohflash writes (one CCD, 4
-    frames, 32 rows, whole rows), whose 32-row tiles are read into pieces of 8 rows."""
+    frames, 32 rows, whole rows), whose 32-row tiles are read into pieces of 8 rows; with a
+    dataset of `extra_bytes` of the user's own beside the frames (a larger file)."""
     from .independent_writer import PAPER_FREQUENCIES_HZ, Writer
 
     rng = np.random.default_rng(seed)
     depth = 30.5 + 0.2 * rng.random((64, 64))
     Writer(frequencies_hz=PAPER_FREQUENCIES_HZ[:n]).write(path, depth, rng, chunks=(1, 4, 32, 64))
+    if extra_bytes:
+        with h5py.File(path, "a") as f:
+            f.create_dataset("notes/padding", data=np.ones(extra_bytes, np.uint8))
     return path
 
 
@@ -464,7 +468,9 @@ def test_a_reconstruct_process_reads_its_first_tile_while_it_imports(tmp_path):
     a registered capture (read elsewhere) and a small file fork nothing."""
     from cohflash_jax import early_read
 
-    capture = _pieceable_capture(tmp_path / "c.h5", n=2200)  # 72 MB: above `EARLY_READ_MIN_BYTES`
+    # above `EARLY_READ_MIN_BYTES` with a dataset of the user's own; its sub-tiles' programs
+    # those of tests/test_carrier.py
+    capture = _pieceable_capture(tmp_path / "c.h5", extra_bytes=early_read.EARLY_READ_MIN_BYTES)
     assert capture.stat().st_size >= early_read.EARLY_READ_MIN_BYTES
     cli = ["python", "-m", "cohflash_jax.cli", "reconstruct", str(capture), "--out", "d.h5"]
     for argv in (["python", "-m", "pytest"], [*cli[:3], "info", str(capture)], [*cli, "--scheduler", "processes"]):
