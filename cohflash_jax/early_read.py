@@ -1,11 +1,12 @@
 """A `cohflash reconstruct` capture's first tile, read while the process imports.
 
-A warm full-capture run spends its first ~0.6 s importing JAX and the package on one core, and
-then read its first tile (0.1–0.2 s) on one core before any program could run. Here, as the
-package starts importing (no thread exists yet), the process maps the memory its first tile
-buffer needs, shared, and forks a child: with an interpreter lock of its own, the child
-touches those pages and reads the first tile into them, laid out as `engine.PieceReader` will
-lay out its first buffer there (`tiling`), while the parent imports on the other core. The
+A `cohflash reconstruct` process imports JAX and the package on one core, and would then read
+its first tile on one core before any program could run. Instead, as the package starts
+importing (no thread exists yet), the process maps the memory its first tile buffer needs,
+shared, and forks a child: with an interpreter lock of its own (a thread would wait for the
+parent's at each of its reads), the child touches those pages and reads the first tile into
+them, laid out as `engine.PieceReader` will lay out its first buffer there (`tiling`), while
+the parent imports on the other core, and sends the parent the chunk index it listed. The
 reader takes the tile as read (`holds_first_tile`) where the child read the same file,
 unchanged, into the same layout at the same address; anything else (a Zarr store, a
 compressed or HDF5-filled capture, another tile size, a GPU's tiles) finds the memory touched
@@ -187,8 +188,8 @@ def read_into(mapping: mmap.mmap, reader, dtype, tile_rows: int | None) -> dict:
 
     _, n, h, w = reader.shape
     rows = tiling.rows_per_tile((n, h, w), dtype.itemsize, tile_rows)
-    rows_per_piece = tiling.piece_rows(rows, n, w, "cpu")
-    if rows_per_piece is None or h * w <= tiling.QUICK_COMPILE_MAX_PIXELS:
+    rows_per_piece = tiling.capture_piece_rows((n, h, w), rows, "cpu")
+    if rows_per_piece is None:
         return {"read": False, "why": "its tiles are not read in pieces"}
     if not reader.covers(slice(0, rows)) or not reader.scatters(rows, rows_per_piece):
         return {"read": False, "why": "its chunks cannot be scattered into pieces"}

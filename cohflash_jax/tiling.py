@@ -88,6 +88,13 @@ def piece_rows(rows: int, num_frames: int, width: int, platform: str) -> int | N
     return fits[-1] if fits and 2 * fits[-1] * width >= sub and fits[-1] < rows else None
 
 
+def capture_piece_rows(shape: tuple[int, int, int], rows: int, platform: str) -> int | None:
+    """`piece_rows` for the tiles of `rows` rows of a capture of `shape` (N, H, W); None for a
+    region of interest (`QUICK_COMPILE_MAX_PIXELS`), whose tiles keep their `pixel_bucket`."""
+    n, h, w = shape
+    return None if h * w <= QUICK_COMPILE_MAX_PIXELS else piece_rows(rows, n, w, platform)
+
+
 def piece_stride_bytes(num_frames: int, sub: int, itemsize: int) -> int:
     """Bytes from one piece of a tile read into its sub-tiles to the next (each (4, N, sub)
     frames, `BUFFER_ALIGNMENT_BYTES`-aligned, in one allocation)."""

@@ -23,7 +23,7 @@ import numpy as np
 from .. import early_read, tiling
 from ..capture import Capture
 from ..runtime import EXECUTABLES, device_value, place_on_devices, stream_devices
-from ..tiling import BUFFER_ALIGNMENT_BYTES, QUICK_COMPILE_MAX_PIXELS
+from ..tiling import BUFFER_ALIGNMENT_BYTES
 from .plan import TilePlan, program_plan
 from .programs import inversion_plan, prepare_stages, process_stages
 
@@ -259,10 +259,8 @@ class PieceReader(TileBuffers):
 
     @classmethod
     def of(cls, capture: Capture, rows: int) -> PieceReader | None:
-        n, _, w = capture.shape
-        rows_per_piece = tiling.piece_rows(rows, n, w, jax.default_backend())
-        small = capture.shape[1] * w <= QUICK_COMPILE_MAX_PIXELS  # a region of interest: its bucket
-        if rows_per_piece is None or small or capture.store != "hdf5" or capture.direct_reader is None:
+        rows_per_piece = tiling.capture_piece_rows(capture.shape, rows, jax.default_backend())
+        if rows_per_piece is None or capture.store != "hdf5" or capture.direct_reader is None:
             return None
         reader = cls(capture, rows, rows_per_piece)
         return reader if reader.new_buffer() is not None else None
