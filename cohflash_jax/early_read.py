@@ -239,7 +239,10 @@ def wait_for_child(timeout_s: float = CHILD_WAIT_S) -> None:
             os.kill(pid, signal.SIGKILL)
     finally:
         os.close(report_fd)
-        os.waitpid(pid, 0)
+        try:
+            os.waitpid(pid, 0)
+        except ChildProcessError:  # reaped already (a process that ignores SIGCHLD)
+            pass
     _EARLY["report"] = parse_report(b"".join(chunks))
     if "index" in _EARLY["report"]:
         _EARLY["index"] = (_EARLY["report"]["file"], _EARLY["report"].pop("index"))
