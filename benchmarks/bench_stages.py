@@ -107,7 +107,7 @@ with Capture(capture) as cap:
     read = time.perf_counter() - t
     instrument = cap.instrument()
     block = reader.read(0)
-    sub = pieces.sub if pieces else sub_tile_pixels(rows * w, n)
+    sub = pieces.layout.sub if pieces else sub_tile_pixels(rows * w, n)
     first = block.pieces[0] if pieces else block[..., :sub]
 plan = build_plan(instrument, options, None, tracking=False)
 frames = jax.device_put(np.array(first))

@@ -147,16 +147,10 @@ def file_identity(fd: int) -> list[int]:
     return [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns]
 
 
-def layout_key(shape: tuple[int, int, int], dtype, rows: int, rows_per_piece: int, stride: int) -> list:
-    """A first tile's layout as the child reports it and `engine.PieceReader` compares it:
-    the capture's (N, H, W) and dtype, the tile's rows, the rows a piece, the pieces' stride."""
-    return [*map(int, shape), str(dtype), int(rows), int(rows_per_piece), int(stride)]
-
-
 def read_first_tile(mapping: mmap.mmap, path: str, tile_rows: int | None = None) -> dict:
     """Read the first tile of the capture at `path` into `mapping` as `engine.PieceReader`
-    lays out its first buffer there on the CPU (`tiling`): {"read": True, "file":
-    `file_identity`, "layout": `layout_key`, "address": the first piece's address}, or
+    lays out its first buffer there on the CPU (`tiling.PieceLayout`): {"read": True, "file":
+    `file_identity`, "layout": `PieceLayout.key`, "address": the first piece's address}, or
     {"read": False, "why": …} where it cannot (the parent then reads as before); with the
     frames' chunk index where it was listed ("index": `DirectChunkReader.offsets`, of the
     file "file"), which the parent's reader then takes instead of listing it again."""
@@ -186,26 +180,21 @@ def read_into(mapping: mmap.mmap, reader, dtype, tile_rows: int | None) -> dict:
 
     from . import tiling
 
-    _, n, h, w = reader.shape
-    rows = tiling.rows_per_tile((n, h, w), dtype.itemsize, tile_rows)
-    rows_per_piece = tiling.capture_piece_rows((n, h, w), rows, "cpu")
-    if rows_per_piece is None:
+    shape = reader.shape[1:]
+    layout = tiling.PieceLayout.of(shape, dtype, tiling.rows_per_tile(shape, dtype.itemsize, tile_rows), "cpu")
+    if layout is None:
         return {"read": False, "why": "its tiles are not read in pieces"}
-    if not reader.covers(slice(0, rows)) or not reader.scatters(rows, rows_per_piece):
+    rows = slice(0, layout.rows)
+    if not reader.covers(rows) or not reader.scatters(layout.rows, layout.rows_per_piece):
         return {"read": False, "why": "its chunks cannot be scattered into pieces"}
-    sub = rows_per_piece * w
-    stride = tiling.piece_stride_bytes(n, sub, dtype.itemsize)
-    count = rows // rows_per_piece
-    if len(mapping) < count * stride + tiling.BUFFER_ALIGNMENT_BYTES:
+    if len(mapping) < layout.buffer_bytes:
         return {"read": False, "why": "the tile is larger than the memory mapped"}
-    raw = np.frombuffer(mapping, np.uint8)
-    _, pieces = tiling.tile_pieces(raw, count, stride, (4, n, sub), dtype)
+    _, pieces = layout.pieces(np.frombuffer(mapping, np.uint8))
     before = file_identity(reader.fd)
-    reader.read_rows_into_pieces(reader.scatter_table(pieces, rows, rows_per_piece), slice(0, rows))
+    reader.read_rows_into_pieces(reader.scatter_table(pieces, layout.rows, layout.rows_per_piece), rows)
     if file_identity(reader.fd) != before:
         return {"read": False, "why": "the file changed while it was read"}
-    layout = layout_key((n, h, w), dtype, rows, rows_per_piece, stride)
-    return {"read": True, "file": before, "layout": layout, "address": pieces[0].ctypes.data}
+    return {"read": True, "file": before, "layout": layout.key, "address": pieces[0].ctypes.data}
 
 
 def take_mapping(nbytes: int):
@@ -275,7 +264,7 @@ def known_chunk_index() -> tuple | None:
 
 def holds_first_tile(fd: int, layout: list, address: int) -> bool:
     """Whether the memory taken (`take_mapping`) holds the first tile of the file open as `fd`,
-    laid out as `layout` (`layout_key`) from `address`: the child read that file, unchanged
+    laid out as `layout` (`tiling.PieceLayout.key`) from `address`: the child read that file, unchanged
     since, so. Asked once: the report is let go (False where there is none)."""
     if "report" not in _EARLY:
         return False

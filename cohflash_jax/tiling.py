@@ -8,6 +8,7 @@ Measured sizes and timings: docs/performance.md.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -88,25 +89,62 @@ def piece_rows(rows: int, num_frames: int, width: int, platform: str) -> int | N
     return fits[-1] if fits and 2 * fits[-1] * width >= sub and fits[-1] < rows else None
 
 
-def capture_piece_rows(shape: tuple[int, int, int], rows: int, platform: str) -> int | None:
-    """`piece_rows` for the tiles of `rows` rows of a capture of `shape` (N, H, W); None for a
-    region of interest (`QUICK_COMPILE_MAX_PIXELS`), whose tiles keep their `pixel_bucket`."""
-    n, h, w = shape
-    return None if h * w <= QUICK_COMPILE_MAX_PIXELS else piece_rows(rows, n, w, platform)
+@dataclasses.dataclass(frozen=True)
+class PieceLayout:
+    """How a tile of `rows` rows of a capture of `shape` (N, H, W) and `dtype` is read into
+    pieces of `rows_per_piece` whole rows (`engine.PieceReader`, and a `cohflash reconstruct`
+    process's child, `early_read`): `count` pieces of (4, N, `sub`) frames, `stride` bytes
+    apart from the first `BUFFER_ALIGNMENT_BYTES`-aligned byte of a buffer of `buffer_bytes`."""
 
+    shape: tuple[int, int, int]
+    dtype: np.dtype
+    rows: int
+    rows_per_piece: int
 
-def piece_stride_bytes(num_frames: int, sub: int, itemsize: int) -> int:
-    """Bytes from one piece of a tile read into its sub-tiles to the next (each (4, N, sub)
-    frames, `BUFFER_ALIGNMENT_BYTES`-aligned, in one allocation)."""
-    nbytes = 4 * num_frames * sub * itemsize
-    return -(-nbytes // BUFFER_ALIGNMENT_BYTES) * BUFFER_ALIGNMENT_BYTES
+    @classmethod
+    def of(cls, shape: tuple[int, int, int], dtype, rows: int, platform: str) -> PieceLayout | None:
+        """The layout where tiles of `rows` rows are read in pieces on `platform` (`piece_rows`);
+        None for a region of interest (`QUICK_COMPILE_MAX_PIXELS`), whose tiles keep their
+        `pixel_bucket`, or where no piece size fits."""
+        n, h, w = shape
+        rows_per_piece = None if h * w <= QUICK_COMPILE_MAX_PIXELS else piece_rows(rows, n, w, platform)
+        if rows_per_piece is None:
+            return None
+        return cls(tuple(int(s) for s in shape), np.dtype(dtype), int(rows), rows_per_piece)
 
+    @property
+    def sub(self) -> int:
+        """Pixels a piece (a dispatched sub-tile)."""
+        return self.rows_per_piece * self.shape[2]
 
-def tile_pieces(raw: np.ndarray, count: int, stride: int, piece_shape: tuple, dtype) -> tuple[int, list[np.ndarray]]:
-    """The `count` pieces of `piece_shape` frames of `dtype` a tile is read into, laid out in
-    the bytes `raw` (uint8) `stride` apart from its first `BUFFER_ALIGNMENT_BYTES`-aligned
-    byte: (that byte's offset in `raw`, the pieces as views of `raw`)."""
-    start = -raw.ctypes.data % BUFFER_ALIGNMENT_BYTES
-    size = math.prod(piece_shape) * np.dtype(dtype).itemsize
-    offsets = [start + k * stride for k in range(count)]
-    return start, [raw[o : o + size].view(dtype).reshape(piece_shape) for o in offsets]
+    @property
+    def count(self) -> int:
+        return self.rows // self.rows_per_piece
+
+    @property
+    def piece_shape(self) -> tuple[int, int, int]:
+        return (4, self.shape[0], self.sub)
+
+    @property
+    def stride(self) -> int:
+        nbytes = math.prod(self.piece_shape) * self.dtype.itemsize
+        return -(-nbytes // BUFFER_ALIGNMENT_BYTES) * BUFFER_ALIGNMENT_BYTES
+
+    @property
+    def buffer_bytes(self) -> int:
+        """Bytes of a buffer that holds a tile's pieces wherever it starts."""
+        return self.count * self.stride + BUFFER_ALIGNMENT_BYTES
+
+    @property
+    def key(self) -> list:
+        """The layout as plain values (`early_read` reports it and the reader compares it): N, H,
+        W, the dtype's name, the tile's rows, the rows a piece, the pieces' stride."""
+        return [*self.shape, str(self.dtype), self.rows, self.rows_per_piece, self.stride]
+
+    def pieces(self, raw: np.ndarray) -> tuple[int, list[np.ndarray]]:
+        """The pieces laid out in the bytes `raw` (uint8, at least `buffer_bytes`): (the offset
+        of the first aligned byte in `raw`, the pieces as views of `raw`)."""
+        start = -raw.ctypes.data % BUFFER_ALIGNMENT_BYTES
+        size = math.prod(self.piece_shape) * self.dtype.itemsize
+        offsets = [start + k * self.stride for k in range(self.count)]
+        return start, [raw[o : o + size].view(self.dtype).reshape(self.piece_shape) for o in offsets]

@@ -11,6 +11,7 @@ import cohflash_jax as cf
 from cohflash_jax.capture import Capture, CaptureError, write_capture
 from cohflash_jax.cli import main
 from cohflash_jax.constants import SPEED_OF_LIGHT_M_PER_S as C
+from cohflash_jax.tiling import PieceLayout
 
 
 @pytest.fixture(scope="module")
@@ -163,7 +164,7 @@ def test_tiles_read_straight_into_their_sub_tiles_equal_hdf5_reads(tmp_path, chu
 
     frames = np.random.default_rng(8).integers(0, 2**16, (4, 10, 22, 7), dtype=np.uint16)
     with Capture(_chunked(tmp_path / "c.h5", frames, chunks=chunks)) as cap:
-        reader = PieceReader(cap, tile_rows, rows_per_piece)
+        reader = PieceReader(cap, PieceLayout(cap.shape, cap.frames.dtype, tile_rows, rows_per_piece))
         assert reader.new_buffer() is not None
         sub = rows_per_piece * 7
         for r0 in range(0, 22, tile_rows):
@@ -196,7 +197,7 @@ def test_a_region_of_interest_is_read_whole_a_larger_capture_in_pieces(tmp_path)
     large = _chunked(tmp_path / "l.h5", rng.integers(0, 99, (4, 3000, 32, 48), np.uint16), chunks=(1, 8, 32, 48))
     with Capture(large) as cap:
         reader = PieceReader.of(cap, 32)
-        assert reader is not None and reader.sub == sub_tile_pixels(32 * 48, 3000) == 384
+        assert reader is not None and reader.layout.sub == sub_tile_pixels(32 * 48, 3000) == 384
 
 
 def test_a_tile_source_states_its_tiles_before_reading_them(tmp_path):
@@ -247,7 +248,8 @@ def test_a_capture_truncated_after_it_was_opened_fails_naming_the_rows(tmp_path)
             cap.read_tile_into(buf, slice(8, 16))
         from cohflash_jax.reconstruct.engine import PieceReader
 
-        reader = PieceReader(cap, 8, 2)  # read straight into sub-tiles: the same error
+        # read straight into sub-tiles: the same error
+        reader = PieceReader(cap, PieceLayout(cap.shape, cap.frames.dtype, 8, 2))
         reader.read(0)
         with pytest.raises(CaptureError, match=r"rows 8:16 could not be read .*bytes read"):
             reader.read(8)

@@ -435,13 +435,13 @@ def test_the_first_tile_read_early_is_laid_out_as_the_reader_lays_it_out(tmp_pat
     with Capture(capture) as c:
         reader = PieceReader.of(c, 32)
         tile = reader.read(0)  # read by the reader itself, into a buffer of its own
-        layout = early_read.layout_key(c.shape, c.frames.dtype, 32, reader.rows_per_piece, reader.stride)
+        layout = reader.layout.key
         assert report["layout"] == layout == [1200, 64, 64, "uint16", 32, 8, 4 * 1200 * 512 * 2]
         assert report["file"] == early_read.file_identity(c.direct_reader.fd)
         raw = np.frombuffer(mapping, np.uint8)
         base = report["address"] - raw.ctypes.data
         for k, piece in enumerate(tile.pieces):
-            start = base + k * reader.stride
+            start = base + k * reader.layout.stride
             np.testing.assert_array_equal(raw[start : start + piece.nbytes].view(np.uint16).reshape(piece.shape), piece)
         np.testing.assert_array_equal(tile.frames[:, :, 1, :].reshape(4, 1200, 8, 64), c.frames[:, :, 8:16, :])
     # a small capture's tiles, and a compressed capture's, are read as before

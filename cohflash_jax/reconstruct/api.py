@@ -187,7 +187,7 @@ class TileSource:
         """Pixels per dispatched sub-tile: the pieces the reader reads (`PieceReader`), else
         `engine.sub_tile_pixels`."""
         if isinstance(self.reader, PieceReader):
-            return self.reader.sub
+            return self.reader.layout.sub
         return sub_tile_pixels(self.rows * self.w, num_frames)
 
     def map_tile(self, arr, r0, r1, fill):

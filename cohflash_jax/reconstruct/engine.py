@@ -240,60 +240,55 @@ class TileBuffers:
 
 
 class PieceReader(TileBuffers):
-    """Row tiles of a capture read straight into their sub-tiles of `rows_per_piece` whole rows
-    (`Capture.read_tile_into_pieces`): each chunk scattered by one `preadv` to the pieces its
+    """Row tiles of a capture read straight into their sub-tiles of whole rows, laid out as
+    `layout` says (`Capture.read_tile_into_pieces`): each chunk scattered by one `preadv` to the pieces its
     rows belong to, so no piece is copied out of a tile buffer before it is dispatched (a
     `BlockReader` tile cut into sub-tiles is). A piece is aliased by its device array until
     its tile is gathered, so tiles alternate between two buffers (`hold_last`; the caller
     gathers tile k before reading tile k + 2). None from `of` where the capture's frames are
     not stored for it (`Capture.scatter_tables`)."""
 
-    def __init__(self, capture: Capture, rows: int, rows_per_piece: int):
+    def __init__(self, capture: Capture, layout: tiling.PieceLayout):
         super().__init__()  # (TilePieces, scatter tables) a buffer
-        n, h, w = capture.shape
-        self.capture, self.rows, self.h, self.rows_per_piece = capture, rows, h, rows_per_piece
-        self.dtype = capture.frames.dtype
-        self.sub = rows_per_piece * w
-        self.piece_shape = (4, n, self.sub)
-        self.stride = tiling.piece_stride_bytes(n, self.sub, self.dtype.itemsize)
+        self.capture, self.layout = capture, layout
 
     @classmethod
     def of(cls, capture: Capture, rows: int) -> PieceReader | None:
-        rows_per_piece = tiling.capture_piece_rows(capture.shape, rows, jax.default_backend())
-        if rows_per_piece is None or capture.store != "hdf5" or capture.direct_reader is None:
+        layout = tiling.PieceLayout.of(capture.shape, capture.frames.dtype, rows, jax.default_backend())
+        if layout is None or capture.store != "hdf5" or capture.direct_reader is None:
             return None
-        reader = cls(capture, rows, rows_per_piece)
+        reader = cls(capture, layout)
         return reader if reader.new_buffer() is not None else None
 
     def new_buffer(self):
         """Pieces for one tile in one aligned allocation (`tile_buffer`), and their scatter
         tables; None where the capture cannot scatter into them."""
-        count = self.rows // self.rows_per_piece
-        raw = tile_buffer((count * self.stride + BUFFER_ALIGNMENT_BYTES,), np.uint8)
-        start, pieces = tiling.tile_pieces(raw, count, self.stride, self.piece_shape, self.dtype)
-        tables = self.capture.scatter_tables(pieces, self.rows, self.rows_per_piece)
+        layout = self.layout
+        raw = tile_buffer((layout.buffer_bytes,), np.uint8)
+        start, pieces = layout.pieces(raw)
+        tables = self.capture.scatter_tables(pieces, layout.rows, layout.rows_per_piece)
         if tables is None:
             return None
-        item = self.dtype.itemsize
-        n = self.piece_shape[1]
+        (_, n, sub), item = layout.piece_shape, layout.dtype.itemsize
         frames = np.lib.stride_tricks.as_strided(
-            raw[start:].view(self.dtype),
-            shape=(4, n, count, self.sub),
-            strides=(n * self.sub * item, self.sub * item, self.stride, item),
+            raw[start:].view(layout.dtype),
+            shape=(4, n, layout.count, sub),
+            strides=(n * sub * item, sub * item, layout.stride, item),
             writeable=False,
         )
         self.buffers.append((TilePieces(pieces, frames), tables))
         return self.buffers[-1]
 
     def read(self, r0: int) -> TilePieces:
-        r1 = min(self.h, r0 + self.rows)
+        rows, sub = self.layout.rows, self.layout.sub
+        r1 = min(self.capture.shape[1], r0 + rows)
         tile, tables = self.free_buffer()
         if r0 == 0 and self.first_tile_read_early(tile):
             return tile
-        if r1 - r0 < self.rows:  # pad the last tile so every tile has one compiled shape
-            rows_read = (r1 - r0) * self.sub // self.rows_per_piece
+        if r1 - r0 < rows:  # pad the last tile so every tile has one compiled shape
+            rows_read = (r1 - r0) * sub // self.layout.rows_per_piece
             for k, piece in enumerate(tile.pieces):
-                piece[..., max(0, min(self.sub, rows_read - k * self.sub)) :] = 0
+                piece[..., max(0, min(sub, rows_read - k * sub)) :] = 0
         self.capture.read_tile_into_pieces(tile.pieces, tables, slice(r0, r1))
         return tile
 
@@ -302,9 +297,8 @@ class PieceReader(TileBuffers):
         in this layout, by the child this process forked as it started (`early_read`)."""
         if tile is not self.buffers[0][0]:
             return False
-        n, h, w = self.capture.shape
-        layout = early_read.layout_key((n, h, w), self.dtype, self.rows, self.rows_per_piece, self.stride)
-        return early_read.holds_first_tile(self.capture.direct_reader.fd, layout, tile.pieces[0].ctypes.data)
+        address = tile.pieces[0].ctypes.data
+        return early_read.holds_first_tile(self.capture.direct_reader.fd, self.layout.key, address)
 
 
 class BlockReader(TileBuffers):
