@@ -10,12 +10,17 @@ timed beside two references in the same session, interleaved round by round:
 - the same on a small capture (16×16 pixels, 3000 frames: a user's region of interest), where
   start-up is everything.
 
-Prints the CPU model, its vector ISA (and XLA_FLAGS, e.g. --xla_cpu_max_isa=AVX2), the JAX and
-jaxlib versions, each row's median over the rounds and its ratio to the floor and to the NumPy
-script (ratios taken within a round, then their median: these VMs drift by tens of per cent).
-Printed, never asserted.
+`--isas native,AVX2` times every `cohflash` row once with XLA free to use the CPU's widest vector
+ISA and once held to AVX2 (`XLA_FLAGS=--xla_cpu_max_isa=AVX2`, each with a cache of its own),
+within the same rounds: both are then judged against the same floor and NumPy runs, whose times
+drift with the hour more than the code's.
+
+Prints the CPU model, its vector ISA (and XLA_FLAGS), the JAX and jaxlib versions, each row's
+median over the rounds and its ratio to the floor and to the NumPy script (ratios taken within a
+round, then their median: these VMs drift by tens of per cent). Printed, never asserted.
 
     python benchmarks/bench_process.py [--capture FILE] [--rounds 3] [--methods ml,dft] [--no-cold]
+                                       [--isas native,AVX2]
 """
 
 from __future__ import annotations
@@ -72,6 +77,24 @@ print(float(np.median(depth)))
 """
 
 
+# the values XLA's CPU compiler takes for --xla_cpu_max_isa (xla/backends/cpu/codegen/cpu_features.cc,
+# `CpuFeatureFromString`, any case); another value it only logs, and ignores
+XLA_ISAS = ("SSE4_2", "AVX", "AVX2", "AVX512", "AVX512_VNNI", "AVX512_BF16", "AMX", "AMX_FP16", "NEON", "SVE", "SVE2")
+
+
+def isa_environment(isa: str, cache: Path) -> dict:
+    """This process's environment with the executable cache at `cache` and, unless `isa` is
+    "native", XLA held to `isa` (appended to any XLA_FLAGS already set)."""
+    env = os.environ | {"COHFLASH_JAX_CACHE": str(cache)}
+    if isa != "native":
+        env["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_cpu_max_isa={isa.upper()}".strip()
+    return env
+
+
+def isa_label(isa: str) -> str:
+    return "" if isa == "native" else f" [{isa.upper()}]"
+
+
 def timed(argv: list[str], env: dict | None = None) -> float:
     t0 = time.perf_counter()
     subprocess.run(argv, check=True, env=env, stdout=subprocess.DEVNULL)
@@ -84,7 +107,17 @@ def main():
     p.add_argument("--rounds", type=int, default=3, help="interleaved rounds")
     p.add_argument("--methods", default="ml,dft", help="comma-separated estimators to time")
     p.add_argument("--no-cold", action="store_true", help="skip the cold-cache runs")
+    p.add_argument(
+        "--isas",
+        default="native",
+        help="comma-separated vector ISAs XLA may use for the cohflash rows, in the same rounds: "
+        "'native' (as the environment has it) or a --xla_cpu_max_isa value such as AVX2",
+    )
     args = p.parse_args()
+    isas = args.isas.split(",")
+    unknown = [isa for isa in isas if isa != "native" and isa.upper() not in XLA_ISAS]
+    if unknown:
+        p.error(f"--isas: unknown {', '.join(unknown)}; use 'native' or one of {', '.join(XLA_ISAS)}")
     with tempfile.TemporaryDirectory(prefix="cohflash-bench-process-") as tmp:
         run(args, Path(tmp))
 
@@ -104,12 +137,14 @@ def run(args, folder: Path):
     scripts = {"read once (floor)": READ_ONCE, "NumPy script": NUMPY_SCRIPT}
     for name, text in scripts.items():
         (folder / f"{name.split()[0]}.py").write_text(text)
-    warm_cache = folder / "cache-warm"
-    env_warm = os.environ | {"COHFLASH_JAX_CACHE": str(warm_cache)}
+    isas = args.isas.split(",")
+    env_warm = {isa: isa_environment(isa, folder / f"cache-warm-{isa}") for isa in isas}
     methods = args.methods.split(",")
-    for m in methods:  # fill the warm cache
-        timed([*cli, "reconstruct", capture, "--out", str(folder / "d.h5"), "--method", m, "--quiet"], env_warm)
-    timed([*cli, "reconstruct", small, "--out", str(folder / "s.h5"), "--quiet"], env_warm)
+    for isa in isas:  # fill the warm caches
+        for m in methods:
+            argv = [*cli, "reconstruct", capture, "--out", str(folder / "d.h5"), "--method", m, "--quiet"]
+            timed(argv, env_warm[isa])
+        timed([*cli, "reconstruct", small, "--out", str(folder / "s.h5"), "--quiet"], env_warm[isa])
 
     rows: dict[str, list[float]] = {}
     ratios: dict[str, list[tuple[float, float]]] = {}
@@ -117,18 +152,17 @@ def run(args, folder: Path):
         this = {}
         for name in scripts:
             this[name] = timed([sys.executable, str(folder / f"{name.split()[0]}.py"), capture])
-        for m in methods:
-            argv = [*cli, "reconstruct", capture, "--out", str(folder / f"d-{m}.h5"), "--method", m, "--quiet"]
-            this[f"cohflash reconstruct --method {m}, warm cache"] = timed(argv, env_warm)
+        for isa in isas:
+            cold = lambda what, isa=isa, r=r: isa_environment(isa, folder / f"cache-cold-{what}-{isa}-{r}")
+            for m in methods:
+                argv = [*cli, "reconstruct", capture, "--out", str(folder / f"d-{m}.h5"), "--method", m, "--quiet"]
+                this[f"cohflash reconstruct --method {m}, warm cache{isa_label(isa)}"] = timed(argv, env_warm[isa])
+                if not args.no_cold:
+                    this[f"cohflash reconstruct --method {m}, cold cache{isa_label(isa)}"] = timed(argv, cold(m))
+            argv = [*cli, "reconstruct", small, "--out", str(folder / "s.h5"), "--quiet"]
+            this[f"small capture 16×16×3000 (ml), warm cache{isa_label(isa)}"] = timed(argv, env_warm[isa])
             if not args.no_cold:
-                cold = os.environ | {"COHFLASH_JAX_CACHE": str(folder / f"cache-cold-{m}-{r}")}
-                this[f"cohflash reconstruct --method {m}, cold cache"] = timed(argv, cold)
-        argv = [*cli, "reconstruct", small, "--out", str(folder / "s.h5"), "--quiet"]
-        this["small capture 16×16×3000 (ml), warm cache"] = timed(argv, env_warm)
-        if not args.no_cold:
-            this["small capture 16×16×3000 (ml), cold cache"] = timed(
-                argv, os.environ | {"COHFLASH_JAX_CACHE": str(folder / f"cache-cold-small-{r}")}
-            )
+                this[f"small capture 16×16×3000 (ml), cold cache{isa_label(isa)}"] = timed(argv, cold("small"))
         for name, seconds in this.items():
             rows.setdefault(name, []).append(seconds)
             floor, numpy = this["read once (floor)"], this["NumPy script"]
@@ -141,11 +175,11 @@ def run(args, folder: Path):
     print(f"JAX device: {jax.devices()[0].device_kind} ({jax.default_backend()})")
     print(allocator_description())
     print(f"capture {capture}; {args.rounds} interleaved rounds, medians; whole processes")
-    print(f"{'what':48s} {'seconds':>8s} {'× floor':>8s} {'NumPy ÷ it':>10s}")
+    print(f"{'what':56s} {'seconds':>8s} {'× floor':>8s} {'NumPy ÷ it':>10s}")
     for name, values in rows.items():
         over_floor = statistics.median(a for a, _ in ratios[name])
         numpy_over = statistics.median(b for _, b in ratios[name])
-        print(f"{name:48s} {statistics.median(values):8.2f} {over_floor:8.2f} {numpy_over:10.2f}")
+        print(f"{name:56s} {statistics.median(values):8.2f} {over_floor:8.2f} {numpy_over:10.2f}")
 
 
 if __name__ == "__main__":
