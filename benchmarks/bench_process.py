@@ -87,12 +87,12 @@ def isa_environment(isa: str, cache: Path) -> dict:
     "native", XLA held to `isa` (appended to any XLA_FLAGS already set)."""
     env = os.environ | {"COHFLASH_JAX_CACHE": str(cache)}
     if isa != "native":
-        env["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_cpu_max_isa={isa.upper()}".strip()
+        env["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_cpu_max_isa={isa}".strip()
     return env
 
 
 def isa_label(isa: str) -> str:
-    return "" if isa == "native" else f" [{isa.upper()}]"
+    return "" if isa == "native" else f" [{isa}]"
 
 
 def timed(argv: list[str], env: dict | None = None) -> float:
@@ -114,8 +114,10 @@ def main():
         "'native' (as the environment has it) or a --xla_cpu_max_isa value such as AVX2",
     )
     args = p.parse_args()
-    isas = args.isas.split(",")
-    unknown = [isa for isa in isas if isa != "native" and isa.upper() not in XLA_ISAS]
+    # as XLA reads them (any case), each once: "avx2,AVX2" is one ISA, timed once
+    named = (isa.strip() for isa in args.isas.split(","))
+    args.isas = list(dict.fromkeys(isa if isa == "native" else isa.upper() for isa in named))
+    unknown = [isa for isa in args.isas if isa != "native" and isa not in XLA_ISAS]
     if unknown:
         p.error(f"--isas: unknown {', '.join(unknown)}; use 'native' or one of {', '.join(XLA_ISAS)}")
     with tempfile.TemporaryDirectory(prefix="cohflash-bench-process-") as tmp:
@@ -137,7 +139,7 @@ def run(args, folder: Path):
     scripts = {"read once (floor)": READ_ONCE, "NumPy script": NUMPY_SCRIPT}
     for name, text in scripts.items():
         (folder / f"{name.split()[0]}.py").write_text(text)
-    isas = args.isas.split(",")
+    isas = args.isas
     env_warm = {isa: isa_environment(isa, folder / f"cache-warm-{isa}") for isa in isas}
     methods = args.methods.split(",")
     for isa in isas:  # fill the warm caches
