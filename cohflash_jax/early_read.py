@@ -189,7 +189,7 @@ def read_into(mapping: mmap.mmap, reader, dtype, tile_rows: int | None) -> dict:
         return {"read": False, "why": "its chunks cannot be scattered into pieces"}
     if len(mapping) < layout.buffer_bytes:
         return {"read": False, "why": "the tile is larger than the memory mapped"}
-    _, pieces = layout.pieces(np.frombuffer(mapping, np.uint8))
+    pieces = layout.pieces(np.frombuffer(mapping, np.uint8))
     before = file_identity(reader.fd)
     reader.read_rows_into_pieces(reader.scatter_table(pieces, layout.rows, layout.rows_per_piece), rows)
     if file_identity(reader.fd) != before:

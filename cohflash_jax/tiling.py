@@ -141,10 +141,22 @@ class PieceLayout:
         W, the dtype's name, the tile's rows, the rows a piece, the pieces' stride."""
         return [*self.shape, str(self.dtype), self.rows, self.rows_per_piece, self.stride]
 
-    def pieces(self, raw: np.ndarray) -> tuple[int, list[np.ndarray]]:
-        """The pieces laid out in the bytes `raw` (uint8, at least `buffer_bytes`): (the offset
-        of the first aligned byte in `raw`, the pieces as views of `raw`)."""
+    def pieces(self, raw: np.ndarray) -> list[np.ndarray]:
+        """The pieces laid out in the bytes `raw` (uint8, at least `buffer_bytes`), as views of
+        `raw`, the first at its first `BUFFER_ALIGNMENT_BYTES`-aligned byte."""
         start = -raw.ctypes.data % BUFFER_ALIGNMENT_BYTES
         size = math.prod(self.piece_shape) * self.dtype.itemsize
         offsets = [start + k * self.stride for k in range(self.count)]
-        return start, [raw[o : o + size].view(self.dtype).reshape(self.piece_shape) for o in offsets]
+        return [raw[o : o + size].view(self.dtype).reshape(self.piece_shape) for o in offsets]
+
+    def tile_view(self, raw: np.ndarray) -> np.ndarray:
+        """The same pieces of `raw` seen as one read-only (4, N, `count`, `sub`) array: the
+        tile's pixels in row-major order (the carrier survey's sample)."""
+        start = -raw.ctypes.data % BUFFER_ALIGNMENT_BYTES
+        (_, n, sub), item = self.piece_shape, self.dtype.itemsize
+        return np.lib.stride_tricks.as_strided(
+            raw[start:].view(self.dtype),
+            shape=(4, n, self.count, sub),
+            strides=(n * sub * item, sub * item, self.stride, item),
+            writeable=False,
+        )

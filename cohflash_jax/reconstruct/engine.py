@@ -265,18 +265,11 @@ class PieceReader(TileBuffers):
         tables; None where the capture cannot scatter into them."""
         layout = self.layout
         raw = tile_buffer((layout.buffer_bytes,), np.uint8)
-        start, pieces = layout.pieces(raw)
+        pieces = layout.pieces(raw)
         tables = self.capture.scatter_tables(pieces, layout.rows, layout.rows_per_piece)
         if tables is None:
             return None
-        (_, n, sub), item = layout.piece_shape, layout.dtype.itemsize
-        frames = np.lib.stride_tricks.as_strided(
-            raw[start:].view(layout.dtype),
-            shape=(4, n, layout.count, sub),
-            strides=(n * sub * item, sub * item, layout.stride, item),
-            writeable=False,
-        )
-        self.buffers.append((TilePieces(pieces, frames), tables))
+        self.buffers.append((TilePieces(pieces, layout.tile_view(raw)), tables))
         return self.buffers[-1]
 
     def read(self, r0: int) -> TilePieces:
