@@ -130,15 +130,23 @@ def run_child(mapping: mmap.mmap, path: str, tile_rows: int | None, report_fd: i
         report = {"read": False, "why": f"{type(exc).__name__}: {exc}"}
     finally:
         try:
-            index = report.pop("index", None)
-            if index is not None:
-                report["index_shape"] = list(index.shape)
-            header = json.dumps(report).encode()
-            data = memoryview(REPORT_HEADER.pack(len(header)) + header + (b"" if index is None else index.tobytes()))
+            data = memoryview(encode_report(report))
             while data:
                 data = data[os.write(report_fd, data) :]
         finally:
             os._exit(0)
+
+
+def encode_report(report: dict) -> bytes:
+    """The child's report as it goes through the pipe (`parse_report` reads it back):
+    `REPORT_HEADER` (the length of its JSON), the JSON, then its chunk index's bytes, where it
+    has one ("index", replaced in the JSON by its shape, "index_shape")."""
+    index = report.get("index")
+    fields = {k: v for k, v in report.items() if k != "index"}
+    if index is not None:
+        fields["index_shape"] = list(index.shape)
+    header = json.dumps(fields).encode()
+    return REPORT_HEADER.pack(len(header)) + header + (b"" if index is None else index.tobytes())
 
 
 def file_identity(fd: int) -> list[int]:
@@ -238,7 +246,7 @@ def wait_for_child(timeout_s: float = CHILD_WAIT_S) -> None:
 
 
 def parse_report(data: bytes) -> dict:
-    """The child's report from its bytes (`run_child`): {} where they are cut short or garbled
+    """The child's report from its bytes (`encode_report`): {} where they are cut short or garbled
     (a child stopped or killed); its chunk index, where it sent one, as "index"."""
     import numpy as np
 

@@ -425,9 +425,7 @@ def test_the_first_tile_read_early_is_laid_out_as_the_reader_lays_it_out(tmp_pat
         np.testing.assert_array_equal(stale.offsets, listed.offsets)  # another file's: listed again
         for reader in (listed, taken, stale):
             reader.close()
-    sent = {k: v for k, v in report.items() if k != "index"} | {"index_shape": list(report["index"].shape)}
-    header = json.dumps(sent).encode()
-    data = early_read.REPORT_HEADER.pack(len(header)) + header + report["index"].tobytes()
+    data = early_read.encode_report(report)  # as the child sends it
     back = early_read.parse_report(data)
     np.testing.assert_array_equal(back.pop("index"), report["index"])
     assert back == {k: v for k, v in report.items() if k != "index"}
