@@ -13,14 +13,16 @@ timed beside two references in the same session, interleaved round by round:
 `--isas native,AVX2` times every `cohflash` row once with XLA free to use the CPU's widest vector
 ISA and once held to AVX2 (`XLA_FLAGS=--xla_cpu_max_isa=AVX2`, each with a cache of its own),
 within the same rounds: both are then judged against the same floor and NumPy runs, whose times
-drift with the hour more than the code's.
+drift with the hour more than the code's. `--platforms default,cpu,cuda` does the same for the
+JAX platforms a process may use (`JAX_PLATFORMS`; `default`: as the environment and `cohflash`
+choose): on a GPU machine, the GPU's rows beside its host CPU's.
 
 Prints the CPU model, its vector ISA (and XLA_FLAGS), the JAX and jaxlib versions, each row's
 median over the rounds and its ratio to the floor and to the NumPy script (ratios taken within a
 round, then their median: these VMs drift by tens of per cent). Printed, never asserted.
 
     python benchmarks/bench_process.py [--capture FILE] [--rounds 3] [--methods ml,dft] [--no-cold]
-                                       [--isas native,AVX2]
+                                       [--isas native,AVX2] [--platforms default,cpu]
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 from cohflash_jax.process import allocator_description
 from cohflash_jax.runtime import cpu_description
@@ -82,17 +85,32 @@ print(float(np.median(depth)))
 XLA_ISAS = ("SSE4_2", "AVX", "AVX2", "AVX512", "AVX512_VNNI", "AVX512_BF16", "AMX", "AMX_FP16", "NEON", "SVE", "SVE2")
 
 
-def isa_environment(isa: str, cache: Path) -> dict:
-    """This process's environment with the executable cache at `cache` and, unless `isa` is
-    "native", XLA held to `isa` (appended to any XLA_FLAGS already set)."""
-    env = os.environ | {"COHFLASH_JAX_CACHE": str(cache)}
-    if isa != "native":
-        env["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_cpu_max_isa={isa}".strip()
-    return env
+class Variant(NamedTuple):
+    """How the `cohflash` rows run: the JAX platforms ("default": as the environment has them)
+    and the vector ISA XLA may use ("native": as the environment has it)."""
 
+    platforms: str
+    isa: str
 
-def isa_label(isa: str) -> str:
-    return "" if isa == "native" else f" [{isa}]"
+    def environment(self, cache: Path) -> dict:
+        """This process's environment with the executable cache at `cache`, `JAX_PLATFORMS` set
+        unless "default", and XLA held to the ISA unless "native" (appended to any XLA_FLAGS
+        already set)."""
+        env = os.environ | {"COHFLASH_JAX_CACHE": str(cache)}
+        if self.platforms != "default":
+            env["JAX_PLATFORMS"] = self.platforms
+        if self.isa != "native":
+            env["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_cpu_max_isa={self.isa}".strip()
+        return env
+
+    @property
+    def label(self) -> str:
+        named = [v for v, usual in ((self.platforms, "default"), (self.isa, "native")) if v != usual]
+        return f" [{', '.join(named)}]" if named else ""
+
+    @property
+    def slug(self) -> str:
+        return f"{self.platforms}-{self.isa}"
 
 
 def timed(argv: list[str], env: dict | None = None) -> float:
@@ -113,7 +131,14 @@ def main():
         help="comma-separated vector ISAs XLA may use for the cohflash rows, in the same rounds: "
         "'native' (as the environment has it) or a --xla_cpu_max_isa value such as AVX2",
     )
+    p.add_argument(
+        "--platforms",
+        default="default",
+        help="comma-separated JAX platforms for the cohflash rows, in the same rounds: 'default' "
+        "(as the environment and cohflash choose) or a JAX_PLATFORMS value such as cpu or cuda",
+    )
     args = p.parse_args()
+    args.platforms = list(dict.fromkeys(v.strip().lower() for v in args.platforms.split(",")))
     # as XLA reads them (any case), each once: "avx2,AVX2" is one ISA, timed once
     named = (isa.strip() for isa in args.isas.split(","))
     args.isas = list(dict.fromkeys(isa if isa == "native" else isa.upper() for isa in named))
@@ -139,14 +164,14 @@ def run(args, folder: Path):
     scripts = {"read once (floor)": READ_ONCE, "NumPy script": NUMPY_SCRIPT}
     for name, text in scripts.items():
         (folder / f"{name.split()[0]}.py").write_text(text)
-    isas = args.isas
-    env_warm = {isa: isa_environment(isa, folder / f"cache-warm-{isa}") for isa in isas}
+    variants = [Variant(platforms, isa) for platforms in args.platforms for isa in args.isas]
+    env_warm = {v: v.environment(folder / f"cache-warm-{v.slug}") for v in variants}
     methods = args.methods.split(",")
-    for isa in isas:  # fill the warm caches
+    for v in variants:  # fill the warm caches
         for m in methods:
             argv = [*cli, "reconstruct", capture, "--out", str(folder / "d.h5"), "--method", m, "--quiet"]
-            timed(argv, env_warm[isa])
-        timed([*cli, "reconstruct", small, "--out", str(folder / "s.h5"), "--quiet"], env_warm[isa])
+            timed(argv, env_warm[v])
+        timed([*cli, "reconstruct", small, "--out", str(folder / "s.h5"), "--quiet"], env_warm[v])
 
     rows: dict[str, list[float]] = {}
     ratios: dict[str, list[tuple[float, float]]] = {}
@@ -154,17 +179,17 @@ def run(args, folder: Path):
         this = {}
         for name in scripts:
             this[name] = timed([sys.executable, str(folder / f"{name.split()[0]}.py"), capture])
-        for isa in isas:
-            cold = lambda what, isa=isa, r=r: isa_environment(isa, folder / f"cache-cold-{what}-{isa}-{r}")
+        for v in variants:
+            cold = lambda what, v=v, r=r: v.environment(folder / f"cache-cold-{what}-{v.slug}-{r}")
             for m in methods:
                 argv = [*cli, "reconstruct", capture, "--out", str(folder / f"d-{m}.h5"), "--method", m, "--quiet"]
-                this[f"cohflash reconstruct --method {m}, warm cache{isa_label(isa)}"] = timed(argv, env_warm[isa])
+                this[f"cohflash reconstruct --method {m}, warm cache{v.label}"] = timed(argv, env_warm[v])
                 if not args.no_cold:
-                    this[f"cohflash reconstruct --method {m}, cold cache{isa_label(isa)}"] = timed(argv, cold(m))
+                    this[f"cohflash reconstruct --method {m}, cold cache{v.label}"] = timed(argv, cold(m))
             argv = [*cli, "reconstruct", small, "--out", str(folder / "s.h5"), "--quiet"]
-            this[f"small capture 16×16×3000 (ml), warm cache{isa_label(isa)}"] = timed(argv, env_warm[isa])
+            this[f"small capture 16×16×3000 (ml), warm cache{v.label}"] = timed(argv, env_warm[v])
             if not args.no_cold:
-                this[f"small capture 16×16×3000 (ml), cold cache{isa_label(isa)}"] = timed(argv, cold("small"))
+                this[f"small capture 16×16×3000 (ml), cold cache{v.label}"] = timed(argv, cold("small"))
         for name, seconds in this.items():
             rows.setdefault(name, []).append(seconds)
             floor, numpy = this["read once (floor)"], this["NumPy script"]

@@ -12,22 +12,25 @@ stage then picks float32 or float64 explicitly.
 
 import sys as _sys
 
-# a `cohflash` process: `reconstruct` started again on mimalloc where it is installed (first, before any
-# import or thread), NumPy's BLAS on one thread (set before NumPy loads it), a GPU's memory
-# taken on demand (set before JAX's backends start), no garbage collection until the command
-# module is imported (`cli`), and `reconstruct`'s first tile read by a child process while the
-# imports run (`early_read`: forked here, before any thread)
+# a `cohflash` process: `reconstruct` started again on mimalloc where it is installed (first,
+# before any import or thread), `reconstruct`'s first tile read by a child process while the
+# imports run (`early_read`: forked here, before any thread), no garbage collection until the
+# command module is imported (`cli`), NumPy's BLAS on one thread (set before NumPy loads it), a
+# GPU's memory taken on demand and a small capture reconstructed on the CPU (both set before
+# JAX's backends start)
 from .early_read import start_for_cli as _start_early_read_for_cli
 from .process import gpu_memory_on_demand_for_cli as _gpu_memory_on_demand_for_cli
 from .process import pause_garbage_collection_for_cli as _pause_garbage_collection_for_cli
 from .process import preload_allocator_for_cli as _preload_allocator_for_cli
 from .process import single_threaded_blas_for_cli as _single_threaded_blas_for_cli
+from .process import small_captures_on_cpu_for_cli as _small_captures_on_cpu_for_cli
 
 _preload_allocator_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 _start_early_read_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 _pause_garbage_collection_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 _single_threaded_blas_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 _gpu_memory_on_demand_for_cli(getattr(_sys, "orig_argv", _sys.argv))
+_small_captures_on_cpu_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 
 import jax as _jax  # noqa: E402
 

@@ -523,6 +523,31 @@ def test_a_cohflash_process_takes_gpu_memory_on_demand_unless_told_otherwise(mon
     assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "true"
 
 
+def test_a_small_capture_is_reconstructed_on_the_cpu_unless_told_otherwise(monkeypatch, tmp_path):
+    """`cohflash reconstruct` on a capture file under `GPU_MIN_CAPTURE_BYTES` sets
+    JAX_PLATFORMS=cpu before JAX starts (a GPU's backend start cost more than a region of
+    interest's whole run); a larger capture, another command, a library user's or a test run's
+    process, and a user's own JAX_PLATFORMS are left as they are."""
+    from cohflash_jax.process import GPU_MIN_CAPTURE_BYTES, small_captures_on_cpu_for_cli
+
+    small, large = tmp_path / "roi.h5", tmp_path / "full.h5"
+    small.write_bytes(b"\0" * 4096)
+    with open(large, "wb") as f:  # sparse: its size without writing it
+        f.truncate(GPU_MIN_CAPTURE_BYTES)
+    cli = ["python", "-m", "cohflash_jax.cli"]
+    monkeypatch.delenv("JAX_PLATFORMS", raising=False)
+    assert not small_captures_on_cpu_for_cli(["python", "-m", "pytest", str(small)])
+    assert not small_captures_on_cpu_for_cli([*cli, "reconstruct", str(large), "--out", str(small)])
+    assert not small_captures_on_cpu_for_cli([*cli, "stream", str(small)])
+    assert not small_captures_on_cpu_for_cli([*cli, "reconstruct", str(tmp_path / "missing.h5")])
+    assert "JAX_PLATFORMS" not in os.environ
+    assert small_captures_on_cpu_for_cli([*cli, "reconstruct", str(small), "--out", str(tmp_path / "d.h5")])
+    assert os.environ["JAX_PLATFORMS"] == "cpu"
+    monkeypatch.setenv("JAX_PLATFORMS", "cuda")
+    assert not small_captures_on_cpu_for_cli([*cli, "reconstruct", str(small)])
+    assert os.environ["JAX_PLATFORMS"] == "cuda"
+
+
 def test_a_cohflash_process_starts_again_on_mimalloc_where_it_is_installed(monkeypatch, tmp_path):
     """A `cohflash reconstruct` interpreter runs itself again (`os.execve`, the same command line)
     with mimalloc preloaded, where the library is installed: once (not where LD_PRELOAD names it
