@@ -23,6 +23,25 @@ RUN_CACHE = (
 )
 os.environ["COHFLASH_JAX_CACHE"] = str(RUN_CACHE)
 enable_compilation_cache(RUN_CACHE)
+
+
+def pin_worker_to_its_cores() -> list[int] | None:
+    """An xdist worker on its own share of the CPUs (gw0 the 1st, 3rd, … where two workers
+    share them), before JAX's backends start: XLA sizes each process's thread pools from the
+    CPUs it may run on, and two workers each spreading its programs over every core spent CPU
+    on each other's threads. None where nothing was pinned."""
+    worker, count = os.environ.get("PYTEST_XDIST_WORKER", ""), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
+    if not worker.startswith("gw") or count < 2 or not hasattr(os, "sched_setaffinity"):
+        return None
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < count:
+        return None
+    mine = cpus[int(worker[2:]) % count :: count]
+    os.sched_setaffinity(0, mine)
+    return mine
+
+
+pin_worker_to_its_cores()
 # JAX's backends start now, with one CPU device: the CLI's `use_cpu_streams` (run by tests that
 # call `cohflash` in-process) then changes nothing, and every test compiles for one device; the
 # two-device path has a test of its own, in a subprocess (test_short_sweeps)
