@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
-# One prepared run on a lent GPU machine (issue #21, item 5): the whole-process figures, the
-# 10 Hz mode in memory and from files, where a GPU process's time goes, and the GPU-relevant
-# tests. Each step has its own time limit, so one that hangs costs only its share; the log is
-# also written to $OUT/device_check.log. Run from the repository root, with the image's own
-# JAX (no install: the package runs from the checkout through PYTHONPATH).
+# One prepared run on a lent GPU machine (issue #21, item 5): the whole-process figures (on the GPU
+# and on its host's CPU alone), the 10 Hz mode in memory and from files, where a GPU process's
+# time goes, and the GPU-relevant tests. Each step has its own time limit, so one that hangs
+# costs only its share; the log is also written to $OUT/device_check.log. Run from the
+# repository root, with the image's own JAX (no install: the package runs from the checkout
+# through PYTHONPATH).
 #
 #     bash benchmarks/device_check.sh
 set -u
@@ -29,8 +30,8 @@ nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm --format=csv
 step "simulate traffic (full size, default effects), whole process"
 timed 150 "${cli[@]}" simulate traffic --out "$work/traffic.h5" --quiet
 
-step "whole processes beside the read floor and the NumPy script (ml, 2 interleaved rounds)"
-timed 240 "$py" benchmarks/bench_process.py --capture "$work/traffic.h5" --rounds 2 --methods ml
+step "whole processes beside the read floor and the NumPy script (ml, 2 interleaved rounds; the host's CPU alone too)"
+timed 300 "$py" benchmarks/bench_process.py --capture "$work/traffic.h5" --rounds 2 --methods ml --platforms default,cpu
 
 step "in one process: full capture dft/ml, references, the 10 Hz mode in memory"
 timed 150 "$py" benchmarks/bench_reconstruct.py --capture "$work/traffic.h5" --repeats 1
