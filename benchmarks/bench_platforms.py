@@ -4,7 +4,7 @@ GPU or its host's CPU, by capture size: the measurement behind `process.GPU_MIN_
 
 Simulates the planar scene at each `--sizes` (3000 frames; `--capture` is timed as well), then
 times interleaved rounds of whole processes with each `--platforms` value as `JAX_PLATFORMS`
-('default': as the environment and `cohflash` choose), with a warm cache (a run before the
+('default': as the environment has it and `cohflash` chooses), with a warm cache (a run before the
 rounds filled it) and, with `--cold`, an empty one. Also times the imports and the backend start
 alone (`import cohflash_jax; jax.devices()`, no teardown) per platform. Prints medians with the
 CPU model, JAX versions and the devices. Printed, never asserted.
@@ -16,7 +16,6 @@ CPU model, JAX versions and the devices. Printed, never asserted.
 from __future__ import annotations
 
 import argparse
-import os
 import platform
 import statistics
 import subprocess
@@ -24,7 +23,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from bench_process import timed
+from bench_process import Variant, timed
 
 from cohflash_jax.runtime import cpu_description
 
@@ -36,19 +35,13 @@ def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--capture", help="a capture to time as well (e.g. the full traffic scene)")
     p.add_argument("--sizes", default="16x16,64x64,128x128", help="planar captures to simulate, HxW, 3000 frames")
-    p.add_argument("--platforms", default="cuda,cpu", help="JAX_PLATFORMS values to compare ('default': unset)")
+    p.add_argument("--platforms", default="cuda,cpu", help="JAX_PLATFORMS values to compare ('default': as set here)")
     p.add_argument("--rounds", type=int, default=2, help="interleaved rounds")
     p.add_argument("--cold", action="store_true", help="also time each capture with an empty cache")
     args = p.parse_args()
     platforms = list(dict.fromkeys(v.strip().lower() for v in args.platforms.split(",")))
     with tempfile.TemporaryDirectory(prefix="cohflash-bench-platforms-") as tmp:
         run(args, platforms, Path(tmp))
-
-
-def environment(platforms: str, cache: Path) -> dict:
-    env = os.environ | {"COHFLASH_JAX_CACHE": str(cache)}
-    env.pop("JAX_PLATFORMS", None)
-    return env if platforms == "default" else env | {"JAX_PLATFORMS": platforms}
 
 
 def run(args, platforms: list[str], folder: Path):
@@ -63,7 +56,7 @@ def run(args, platforms: list[str], folder: Path):
         captures[size] = path
     if args.capture:
         captures[Path(args.capture).name] = Path(args.capture)
-    warm = {v: environment(v, folder / f"cache-warm-{v}") for v in platforms}
+    warm = {v: Variant(v, "native").environment(folder / f"cache-warm-{v}") for v in platforms}
     command = lambda path: [*cli, "reconstruct", str(path), "--out", str(folder / "d.h5"), "--quiet"]
     for v in platforms:  # fill the warm caches
         for path in captures.values():
@@ -78,7 +71,7 @@ def run(args, platforms: list[str], folder: Path):
             for v in platforms:
                 this[f"{name} ({path.stat().st_size / 2**20:.0f} MB), warm [{v}]"] = timed(command(path), warm[v])
                 if args.cold:
-                    cold = environment(v, folder / f"cache-cold-{name}-{v}-{r}")
+                    cold = Variant(v, "native").environment(folder / f"cache-cold-{name}-{v}-{r}")
                     this[f"{name} ({path.stat().st_size / 2**20:.0f} MB), cold [{v}]"] = timed(command(path), cold)
         for name, seconds in this.items():
             rows.setdefault(name, []).append(seconds)
