@@ -12,6 +12,7 @@ import subprocess
 import sys
 
 import h5py
+import jax
 import numpy as np
 import pytest
 
@@ -120,6 +121,7 @@ def test_depth_records_every_input_and_the_values_applied_and_info_shows_it(tmp_
     assert applied["hybrid_relative_gains"] == [1, 1.1, 0.9, 1] and applied["system_delay_s"] == 1e-9
     text = _run(["info", str(depth)], capsys)
     assert "method ml" in text and "input calibration" in text and "statuses" in text
+    assert f"JAX {jax.__version__} on {jax.devices()[0]}" in text  # the device it ran on
     assert "gains [1.0, 1.1, 0.9, 1.0]" in _run(["info", str(calibration)], capsys)
 
 

@@ -128,6 +128,11 @@ def _describe_depth(path: Path) -> str:
             f"median σ {np.median(outputs['sigma_m'][valid]) * 1e3:.4g} mm"
         )
     lines += [f"input {role}: {rec.get('path')}" for role, rec in inputs.items()]
+    if "jax_device" in prov:  # where it ran: a small capture runs on the CPU even beside a GPU
+        lines.append(
+            f"made by cohflash {prov.get('cohflash_version', '?')}, JAX {prov.get('jax_version', '?')} "
+            f"on {prov['jax_device']}"
+        )
     lines += [f"note: {n}" for n in json.loads(meta.get("notes", "[]"))]
     return "\n".join(lines)
 
