@@ -64,26 +64,12 @@ def depth_fisher(
     """Fisher information of (depth m, log amplitude, carrier phase rad[, δf Hz]) for one pixel
     of a target at `distance_m` with `reflectance`, per capture of the instrument's sweep: all
     frames, or each frame weighted by `frame_weights` (a 0/1 mask gives sweeps of any N one
-    compiled shape). The instrument is taken as it is, its modulator's roll-off included."""
-    settings = settings or EffectSettings()
-    effects = tuple(effects)
-    f = jnp.asarray(instrument.sweep.frequencies_hz, jnp.float64)
-    echo_e = instrument.sensor.electrons(instrument.link.echo_power_w(distance_m, reflectance, range_falloff))
-    idx = jnp.arange(f.shape[0], dtype=jnp.float64)
-
-    def ports(theta):
-        shift = theta[3] if frequency_only else 0.0
-        returns = _returns(instrument, theta[0], theta[1], theta[2], echo_e)
-        return expected_port_electrons(instrument, settings, returns, f + shift, idx, None, effects)[..., 0]
-
-    theta0 = jnp.asarray([distance_m, 0.0, _CARRIER_PHASE_RAD] + ([0.0] if frequency_only else []), jnp.float64)
-    mean = ports(theta0)
-    var = jax.lax.stop_gradient(instrument.sensor.port_variance_e2(mean, effects))
-    jac = jax.jacfwd(ports)(theta0)  # (4, N, K)
-    w = jac / jnp.sqrt(var)[..., None]
-    if frame_weights is not None:
-        w = w * jnp.sqrt(frame_weights)[:, None]
-    return jnp.einsum("kni,knj->ij", w, w)
+    compiled shape). The instrument is taken as it is, its modulator's roll-off included.
+    Called outside a transformation it runs one compiled program per sweep length and options
+    (`_run_compiled`)."""
+    return _run_compiled(
+        _fisher, instrument, distance_m, reflectance, effects, settings, frequency_only, range_falloff, frame_weights
+    )
 
 
 def crlb_from_fisher(fisher: Float[Array, "K K"]) -> Float[Array, ""]:
@@ -106,11 +92,64 @@ def depth_crlb_m(
     frame_weights: Float[Array, " N"] | None = None,
 ) -> Float[Array, ""]:
     """Depth CRLB (m) of one pixel: phase-locked (all of f_m) or frequency-only (`depth_fisher`)."""
-    return crlb_from_fisher(
-        depth_fisher(
-            instrument, distance_m, reflectance, effects, settings, frequency_only, range_falloff, frame_weights
-        )
+    return _run_compiled(
+        _crlb, instrument, distance_m, reflectance, effects, settings, frequency_only, range_falloff, frame_weights
     )
+
+
+def _fisher(instrument, distance_m, reflectance, settings, frame_weights, *, effects, frequency_only, range_falloff):
+    f = jnp.asarray(instrument.sweep.frequencies_hz, jnp.float64)
+    echo_e = instrument.sensor.electrons(instrument.link.echo_power_w(distance_m, reflectance, range_falloff))
+    idx = jnp.arange(f.shape[0], dtype=jnp.float64)
+
+    def ports(theta):
+        shift = theta[3] if frequency_only else 0.0
+        returns = _returns(instrument, theta[0], theta[1], theta[2], echo_e)
+        return expected_port_electrons(instrument, settings, returns, f + shift, idx, None, effects)[..., 0]
+
+    theta0 = jnp.asarray([distance_m, 0.0, _CARRIER_PHASE_RAD] + ([0.0] if frequency_only else []), jnp.float64)
+    mean = ports(theta0)
+    var = jax.lax.stop_gradient(instrument.sensor.port_variance_e2(mean, effects))
+    jac = jax.jacfwd(ports)(theta0)  # (4, N, K)
+    w = jac / jnp.sqrt(var)[..., None]
+    if frame_weights is not None:
+        w = w * jnp.sqrt(frame_weights)[:, None]
+    return jnp.einsum("kni,knj->ij", w, w)
+
+
+def _crlb(instrument, distance_m, reflectance, settings, frame_weights, *, effects, frequency_only, range_falloff):
+    fisher = _fisher(
+        instrument,
+        distance_m,
+        reflectance,
+        settings,
+        frame_weights,
+        effects=effects,
+        frequency_only=frequency_only,
+        range_falloff=range_falloff,
+    )
+    return crlb_from_fisher(fisher)
+
+
+_STATIC_OPTIONS = ("effects", "frequency_only", "range_falloff")
+_COMPILED = {
+    _fisher: jax.jit(_fisher, static_argnames=_STATIC_OPTIONS),
+    _crlb: jax.jit(_crlb, static_argnames=_STATIC_OPTIONS),
+}
+
+
+def _run_compiled(
+    function, instrument, distance_m, reflectance, effects, settings, frequency_only, range_falloff, frame_weights
+):
+    """`function` as one compiled program, the instrument's, target's and settings' numbers its
+    arguments (one program per sweep length and options), where no input is being traced; run
+    op by op, the forward model's Jacobian was ~100 programs of its own to compile for each new
+    sweep length, seconds before the first bound. Inside a transformation (the design's
+    programs) it is traced inline, as part of the caller's program."""
+    values = (instrument, distance_m, reflectance, settings or EffectSettings(), frame_weights)
+    options = {"effects": tuple(effects), "frequency_only": bool(frequency_only), "range_falloff": bool(range_falloff)}
+    traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(values))
+    return (function if traced else _COMPILED[function])(*values, **options)
 
 
 # ----------------------------------------------------------------------------- closed forms

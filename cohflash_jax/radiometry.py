@@ -17,8 +17,9 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
-import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float
+
+from .xp import namespace
 
 PAPER_PROBE_POWER_W = 15.86e-3
 PAPER_REFERENCE_POWER_PER_PIXEL_W = 0.64e-12
@@ -63,8 +64,10 @@ class LinkBudget(eqx.Module):
                 raise ValueError(f"LinkBudget.{name} must be ≥ 0 (a power cannot be negative), got {v}")
 
     def echo_power_w(self, distance_m, reflectance, range_falloff: bool = True):
-        """Echo power per pixel. Without range falloff, distance is pinned to the reference."""
-        d = jnp.asarray(distance_m) if range_falloff else self.reference_distance_m
-        area = jnp.pi * (self.aperture_diameter_m / 2) ** 2
+        """Echo power per pixel. Without range falloff, distance is pinned to the reference.
+        NumPy on the host (a simulator's scene), jax.numpy under tracing (`xp.namespace`)."""
+        xp = namespace(distance_m, reflectance, self)
+        d = xp.asarray(distance_m if range_falloff else self.reference_distance_m)
+        area = math.pi * (self.aperture_diameter_m / 2) ** 2
         per_pixel = self.probe_power_w / self.illuminated_pixels
-        return per_pixel * jnp.asarray(reflectance) / jnp.pi * area / jnp.square(d) * self.receiver_efficiency
+        return per_pixel * xp.asarray(reflectance) / math.pi * area / xp.square(d) * self.receiver_efficiency

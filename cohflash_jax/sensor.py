@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import equinox as eqx
-import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float
 
 from .constants import PLANCK_J_S, SPEED_OF_LIGHT_M_PER_S
+from .xp import namespace
 
 
 class Sensor(eqx.Module):
@@ -47,8 +47,10 @@ class Sensor(eqx.Module):
         return PLANCK_J_S * SPEED_OF_LIGHT_M_PER_S / self.wavelength_m
 
     def electrons(self, power_w):
-        """Mean photo-electrons per frame from optical power on a pixel, η·P·T_e/hν."""
-        return self.quantum_efficiency * jnp.asarray(power_w) * self.exposure_s / self.photon_energy_j
+        """Mean photo-electrons per frame from optical power on a pixel, η·P·T_e/hν (NumPy on
+        the host, `xp.namespace`)."""
+        xp = namespace(power_w, self)
+        return self.quantum_efficiency * xp.asarray(power_w) * self.exposure_s / self.photon_energy_j
 
     @property
     def dark_electrons(self):
@@ -66,14 +68,16 @@ class Sensor(eqx.Module):
 
         The one noise model of cohflash: the simulator draws its Gaussian noise with this
         variance, and the Fisher information, the design's SNR and the tests' closed forms use
-        it. Poisson shot noise (`shot_noise_model`) has the same variance."""
-        var = jnp.zeros_like(mean_e)
+        it. Poisson shot noise (`shot_noise_model`) has the same variance. NumPy on the host
+        (`xp.namespace`)."""
+        xp = namespace(mean_e, self)
+        var = xp.zeros_like(mean_e)
         if "shot_noise" in effects:
-            var = var + jnp.maximum(mean_e, 0.0)
+            var = var + xp.maximum(mean_e, 0.0)
         if "dark_current" in effects:
-            var = var + jnp.asarray(self.dark_electrons, var.dtype)
+            var = var + xp.asarray(self.dark_electrons, var.dtype)
         if "read_noise" in effects:
-            var = var + jnp.asarray(self.read_noise_e, var.dtype) ** 2
+            var = var + xp.asarray(self.read_noise_e, var.dtype) ** 2
         if quantization and "quantization" in effects:
             var = var + self.quantization_variance_e2
         return var

@@ -26,10 +26,8 @@ def test_autodiff_fisher_equals_closed_form(paper_instrument):
     closed-form phase-locked and frequency-only bounds of a real tone in white noise."""
     f = paper_instrument.sweep.frequencies_hz
     sigma, amp = closed_form_noise_and_amplitude(paper_instrument, 0.5)
-    # each bound one compiled program, not hundreds of operations compiled one by one
-    bound = jax.jit(depth_crlb_m, static_argnames=("frequency_only", "range_falloff"))
-    locked = float(bound(paper_instrument, 30.5, 0.5, range_falloff=False))
-    freq_only = float(bound(paper_instrument, 30.5, 0.5, frequency_only=True, range_falloff=False))
+    locked = float(depth_crlb_m(paper_instrument, 30.5, 0.5, range_falloff=False))
+    freq_only = float(depth_crlb_m(paper_instrument, 30.5, 0.5, frequency_only=True, range_falloff=False))
     assert locked == pytest.approx(crlb_phase_locked_m(f, amp, sigma), rel=2e-3)
     assert freq_only == pytest.approx(
         float(crlb_frequency_only_m(f.size, paper_instrument.sweep.step_hz, amp, sigma)), rel=2e-3
@@ -40,6 +38,35 @@ def test_autodiff_fisher_equals_closed_form(paper_instrument):
 def _crlb(**point):
     full = design.complete_point(point)
     return design.crlb_rows([full])[0]
+
+
+# every program JAX traces in this process (a jitted call it has traced before traces nothing)
+TRACES = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, duration, **_: TRACES.append(event) if event == "/jax/core/compile/jaxpr_trace_duration" else None
+)
+
+
+def test_a_bound_on_the_host_is_one_program_per_sweep_length():
+    """`depth_crlb_m` called outside a transformation: a new sweep length traces one program (op
+    by op, the forward model's Jacobian traced and compiled ~100), an instrument of other numbers
+    (power, β, roll-off, target) none, and its bound is the one traced inline in a caller's
+    program (the design's)."""
+    first = cf.Instrument.paper(47)
+    before = len(TRACES)
+    depth_crlb_m(first, 30.5, 0.5).block_until_ready()
+    assert len(TRACES) - before <= 2
+    other = first.replace(
+        modulator=cf.MZM(modulation_index=2.5, rolloff_3db_hz=4e9),
+        link=cf.LinkBudget(probe_power_w=0.03),
+    )
+    before = len(TRACES)
+    on_host = float(depth_crlb_m(other, 12.0, 0.3))
+    assert len(TRACES) == before
+    inline = float(jax.jit(lambda inst, d, rho: depth_crlb_m(inst, d, rho))(other, 12.0, 0.3))
+    assert on_host == pytest.approx(inline, rel=1e-12) and on_host != pytest.approx(
+        float(depth_crlb_m(first, 30.5, 0.5))
+    )
 
 
 def test_crlb_scaling_laws():
