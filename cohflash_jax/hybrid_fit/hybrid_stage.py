@@ -112,34 +112,43 @@ def common_carrier(frames, hybrid_h, amplitudes, tone, noise_var, step_var_rad2=
     estimate, which also smooths u where the tones pass through zero. Solved by conjugate
     gradients (u as real pairs, per-frame 2×2 blocks as preconditioner). A pixel of zero
     amplitude (one `fit_hybrid` did not use) adds nothing."""
-    c = hybrid_h[:, None, None] * amplitudes[None, None, :] * tone[None]  # (4, N, P)
-    wgt = (1 / noise_var)[:, None, :]
-    centred = frames - jnp.mean(frames, axis=1, keepdims=True)
-    cr, ci = jnp.real(c), jnp.imag(c)
+    # c_kp[m] = h_k·zs[m, p]: every product over the 4 ports and P pixels reduces to sums over
+    # the pixels of per-pixel port sums, so one CG step costs O(N·P), not several passes over
+    # (4, N, P) arrays. With W = diag(1/σ²) constant over the frames, centring C commutes with
+    # it: the normal operator Aᵀ C W C A u = D[m]·u[m] − (1/N)·Σ_p conj(zs[m, p])·g_p(u)
+    n = frames.shape[1]
+    weight = 1 / noise_var  # (4, P)
+    zs = amplitudes[None, :] * tone  # (N, P)
+    power = jnp.abs(zs) ** 2 @ jnp.sum(weight * jnp.abs(hybrid_h[:, None]) ** 2, 0)  # Σ w|c|²
+    square = zs**2 @ jnp.sum(weight * hybrid_h[:, None] ** 2, 0)  # Σ w c²
+    # per-frame 2×2 blocks of Σ w·(Re c, −Im c)ᵀ(Re c, −Im c)
+    a00, a01, a11 = 0.5 * (power + jnp.real(square)), -0.5 * jnp.imag(square), 0.5 * (power - jnp.real(square))
+    weighted_conj_h = weight * jnp.conj(hybrid_h)[:, None]  # (4, P)
+    zs_conj = jnp.conj(zs)
 
-    def model(u):  # u (N, 2) → centred Re(c·u)
-        m = cr * u[None, :, 0, None] - ci * u[None, :, 1, None]
-        return m - jnp.mean(m, axis=1, keepdims=True)
-
-    def adjoint(x):  # (4, N, P) → (N, 2)
-        x = wgt * (x - jnp.mean(x, axis=1, keepdims=True))
-        return jnp.stack([jnp.sum(x * cr, (0, 2)), -jnp.sum(x * ci, (0, 2))], -1)
+    def normal(u):  # (N, 2) → Aᵀ C W C A u
+        uc = u[:, 0] + 1j * u[:, 1]
+        ports = jnp.real(hybrid_h[:, None] * (uc @ zs)[None, :])  # Σ_m Re(c_kp[m]·u[m]), (4, P)
+        mean_term = zs_conj @ jnp.sum(weighted_conj_h * ports, 0) / n  # (N,)
+        block = jnp.stack([a00 * u[:, 0] + a01 * u[:, 1], a01 * u[:, 0] + a11 * u[:, 1]], -1)
+        return block - jnp.stack([jnp.real(mean_term), jnp.imag(mean_term)], -1)
 
     def roughness(u):  # Dᵀ D u for the first difference D
         d = jnp.diff(u, axis=0)
         zero = jnp.zeros((1, 2), u.dtype)
         return (jnp.concatenate([zero, d]) - jnp.concatenate([d, zero])) / step_var_rad2
 
-    a00, a01, a11 = jnp.sum(wgt * cr * cr, (0, 2)), -jnp.sum(wgt * cr * ci, (0, 2)), jnp.sum(wgt * ci * ci, (0, 2))
-    a00, a11 = a00 + 2 / step_var_rad2, a11 + 2 / step_var_rad2
-    det = a00 * a11 - a01 * a01
+    b00, b11 = a00 + 2 / step_var_rad2, a11 + 2 / step_var_rad2
+    det = b00 * b11 - a01 * a01
 
     def precondition(x):
-        return jnp.stack([(a11 * x[:, 0] - a01 * x[:, 1]) / det, (a00 * x[:, 1] - a01 * x[:, 0]) / det], -1)
+        return jnp.stack([(b11 * x[:, 0] - a01 * x[:, 1]) / det, (b00 * x[:, 1] - a01 * x[:, 0]) / det], -1)
 
-    rhs = adjoint(centred)
+    centred = frames - jnp.mean(frames, axis=1, keepdims=True)
+    rhs_c = jnp.sum(zs_conj * jnp.einsum("kp,knp->np", weighted_conj_h, centred), 1)  # Aᵀ W C x
+    rhs = jnp.stack([jnp.real(rhs_c), jnp.imag(rhs_c)], -1)
     sol, _ = jax.scipy.sparse.linalg.cg(
-        lambda u: adjoint(model(u)) + roughness(u), rhs, x0=precondition(rhs), M=precondition, tol=1e-10, maxiter=500
+        lambda u: normal(u) + roughness(u), rhs, x0=precondition(rhs), M=precondition, tol=1e-10, maxiter=500
     )
     return sol[:, 0] + 1j * sol[:, 1]
 
