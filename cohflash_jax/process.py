@@ -8,6 +8,8 @@ environment."""
 from __future__ import annotations
 
 import gc
+import json
+import math
 import os
 import sys
 
@@ -50,6 +52,32 @@ def cli_input_bytes(argv) -> int | None:
         return None if path is None else os.path.getsize(path)
     except OSError:
         return None
+
+
+def zarr_frames_bytes(folder) -> int | None:
+    """The frames' size in bytes of a Zarr capture store (`capture_zarr`): their shape times
+    their item size, from `frames/zarr.json` (whatever the chunks on disk hold, compressed or
+    not written yet); None where the folder is not such a store."""
+    try:
+        with open(os.path.join(folder, "frames", "zarr.json"), encoding="utf-8") as f:
+            meta = json.load(f)
+        bits = int("".join(ch for ch in str(meta["data_type"]) if ch.isdigit()) or 8)
+        return math.prod(int(n) for n in meta["shape"]) * max(1, bits // 8)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def cli_capture_bytes(argv) -> int | None:
+    """The size of the largest capture named on a command line: a file's size, or a Zarr
+    store's frames (`zarr_frames_bytes`); None where none is named."""
+    sizes = [cli_input_bytes(argv)]
+    for arg in argv[1:]:
+        try:
+            if not arg.startswith("-") and os.path.isdir(arg):
+                sizes.append(zarr_frames_bytes(arg))
+        except (OSError, ValueError):
+            continue
+    return max((size for size in sizes if size is not None), default=None)
 
 
 # The allocator a `cohflash` command runs on where the system has it (`preload_allocator_for_cli`),
@@ -179,8 +207,8 @@ CPU_FOR_SMALL_CAPTURES_COMMANDS = ("reconstruct",)
 
 
 def small_captures_on_cpu_for_cli(argv) -> bool:
-    """Where this interpreter runs `cohflash reconstruct` on a capture file (`cli_input_path`)
-    smaller than `GPU_MIN_CAPTURE_BYTES`, run it on the CPU alone (`JAX_PLATFORMS=cpu`, unless
+    """Where this interpreter runs `cohflash reconstruct` on a capture (a file or a Zarr store,
+    `cli_capture_bytes`) smaller than `GPU_MIN_CAPTURE_BYTES`, run it on the CPU alone (`JAX_PLATFORMS=cpu`, unless
     the user set `JAX_PLATFORMS`). A one-off process spends more starting a GPU's backend and
     moving the frames to it than the CPU spends on a region of interest's whole
     reconstruction: on an H200's 16-core host, whole warm processes from 16×16 to 128×128
@@ -190,7 +218,7 @@ def small_captures_on_cpu_for_cli(argv) -> bool:
     backends start; returns whether the command runs on the CPU alone."""
     if cli_command(argv) not in CPU_FOR_SMALL_CAPTURES_COMMANDS or "JAX_PLATFORMS" in os.environ:
         return False
-    size = cli_input_bytes(argv)
+    size = cli_capture_bytes(argv)
     if size is None or size >= GPU_MIN_CAPTURE_BYTES:
         return False
     os.environ["JAX_PLATFORMS"] = "cpu"

@@ -548,6 +548,17 @@ def test_a_small_capture_is_reconstructed_on_the_cpu_unless_told_otherwise(monke
     monkeypatch.setenv("JAX_PLATFORMS", "cuda")
     assert not small_captures_on_cpu_for_cli([*cli, "reconstruct", str(small)])
     assert os.environ["JAX_PLATFORMS"] == "cuda"
+    # a Zarr store counts by its frames' size (shape × item size), not by what its folder holds
+    from cohflash_jax.capture import CaptureHeader
+    from cohflash_jax.capture_zarr import create_zarr_capture
+
+    attrs = {"exposure_s": 4e-3, "frame_rate_hz": 200.0, "wavelength_m": 1550e-9}
+    frequencies = np.linspace(0.1e9, 6e9, 3000)
+    monkeypatch.delenv("JAX_PLATFORMS")
+    for side, on_cpu in ((16, True), (320, False)):  # uint16 frames: 6 MB; 1.97 GB (no chunk written)
+        store = create_zarr_capture(tmp_path / f"{side}.zarr", CaptureHeader(frequencies, side, side, np.uint16, attrs))
+        assert small_captures_on_cpu_for_cli([*cli, "reconstruct", str(store), "--out", str(small)]) is on_cpu
+        assert os.environ.pop("JAX_PLATFORMS", None) == ("cpu" if on_cpu else None)
 
 
 def test_a_cohflash_process_starts_again_on_mimalloc_where_it_is_installed(monkeypatch, tmp_path):
