@@ -70,14 +70,8 @@ def zarr_frames_bytes(folder) -> int | None:
 def cli_capture_bytes(argv) -> int | None:
     """The size of the largest capture named on a command line: a file's size, or a Zarr
     store's frames (`zarr_frames_bytes`); None where none is named."""
-    sizes = [cli_input_bytes(argv)]
-    for arg in argv[1:]:
-        try:
-            if not arg.startswith("-") and os.path.isdir(arg):
-                sizes.append(zarr_frames_bytes(arg))
-        except (OSError, ValueError):
-            continue
-    return max((size for size in sizes if size is not None), default=None)
+    stores = [zarr_frames_bytes(arg) for arg in argv[1:] if not arg.startswith("-") and os.path.isdir(arg)]
+    return max((size for size in [cli_input_bytes(argv), *stores] if size is not None), default=None)
 
 
 # The allocator a `cohflash` command runs on where the system has it (`preload_allocator_for_cli`),
@@ -208,12 +202,12 @@ CPU_FOR_SMALL_CAPTURES_COMMANDS = ("reconstruct",)
 
 def small_captures_on_cpu_for_cli(argv) -> bool:
     """Where this interpreter runs `cohflash reconstruct` on a capture (a file or a Zarr store,
-    `cli_capture_bytes`) smaller than `GPU_MIN_CAPTURE_BYTES`, run it on the CPU alone (`JAX_PLATFORMS=cpu`, unless
-    the user set `JAX_PLATFORMS`). A one-off process spends more starting a GPU's backend and
-    moving the frames to it than the CPU spends on a region of interest's whole
-    reconstruction: on an H200's 16-core host, whole warm processes from 16×16 to 128×128
-    pixels of 3000 frames took 1.9–2.3 s on the CPU against 2.5–2.8 s on the GPU, cold
-    4.4–6.5 s against 6.4–7.7 s (docs/performance.md). The depth file records the device
+    `cli_capture_bytes`) smaller than `GPU_MIN_CAPTURE_BYTES`, run it on the CPU alone
+    (`JAX_PLATFORMS=cpu`, unless the user set `JAX_PLATFORMS`). A one-off process spends more
+    starting a GPU's backend and moving the frames to it than the CPU spends on a region of
+    interest's whole reconstruction: on an H200's 16-core host, whole warm processes from
+    16×16 to 128×128 pixels of 3000 frames took 1.9–2.3 s on the CPU against 2.5–2.8 s on the
+    GPU, cold 4.4–6.5 s against 6.4–7.7 s (docs/performance.md). The depth file records the device
     (`provenance`); CPU and GPU results agree to ~1e-6 mm. Called on import, before JAX's
     backends start; returns whether the command runs on the CPU alone."""
     if cli_command(argv) not in CPU_FOR_SMALL_CAPTURES_COMMANDS or "JAX_PLATFORMS" in os.environ:
