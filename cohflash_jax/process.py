@@ -68,10 +68,12 @@ def zarr_frames_bytes(folder) -> int | None:
 
 
 def cli_capture_bytes(argv) -> int | None:
-    """The size of the largest capture named on a command line: a file's size, or a Zarr
-    store's frames (`zarr_frames_bytes`); None where none is named."""
+    """The size of the capture a command line names: a Zarr store's frames (`zarr_frames_bytes`)
+    where it names one, else its largest file's (`cli_input_bytes`); None where it names
+    neither. A store's depth file may be larger than a small store's frames, and exists only
+    after the run: the store decides."""
     stores = [zarr_frames_bytes(arg) for arg in argv[1:] if not arg.startswith("-") and os.path.isdir(arg)]
-    return max((size for size in [cli_input_bytes(argv), *stores] if size is not None), default=None)
+    return max((size for size in stores if size is not None), default=None) or cli_input_bytes(argv)
 
 
 # The allocator a `cohflash` command runs on where the system has it (`preload_allocator_for_cli`),

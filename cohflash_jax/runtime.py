@@ -15,7 +15,7 @@ from typing import NoReturn
 
 import numpy as np
 
-from .process import cli_command, cli_input_bytes
+from .process import cli_capture_bytes, cli_command
 
 _M_MXFAST, _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = 1, -1, -3  # glibc mallopt parameters (malloc.h)
 _applied = False
@@ -821,8 +821,8 @@ PREFETCH_COMMANDS = ("reconstruct", "stream")
 def prefetch_for_cli(argv) -> bool:
     """Where this interpreter runs a `cohflash` command of `PREFETCH_COMMANDS` with the
     executable cache on: JAX's CPU devices and the cache set up as the CLI will, and the
-    entries that command's last run on an input of the same size used loaded in a thread
-    (`ExecutableCache.prefetch`).
+    entries that command's last run on a capture of the same size (a file's, or a Zarr store's
+    frames: `process.cli_capture_bytes`) used loaded in a thread (`ExecutableCache.prefetch`).
     The package calls it on import, just after importing JAX: the rest of its imports and the
     command's start (~0.4 s) then hide most of the load (0.36 s for a full capture's
     programs). Returns whether a load started."""
@@ -834,7 +834,7 @@ def prefetch_for_cli(argv) -> bool:
         if enable_compilation_cache() is None:
             return False
         retain_freed_memory()  # before the loads (their allocations)
-        return EXECUTABLES.prefetch(EXECUTABLES.recent(command, cli_input_bytes(argv)))
+        return EXECUTABLES.prefetch(EXECUTABLES.recent(command, cli_capture_bytes(argv)))
     except Exception:
         return False
 

@@ -390,6 +390,14 @@ def test_a_reconstruct_process_loads_its_last_runs_programs_while_it_imports(tmp
     third, depth3, _ = run(3)
     assert third["used"] == len(names) - 1 and third["compiled"] == 1
     np.testing.assert_array_equal(depth3, depth)
+    # a Zarr store (a folder) is known by its frames' size, not by a depth file the run writes
+    # (larger than so small a store's frames), so its runs, each to a new depth file, start
+    # loading their last run's programs too
+    store = tmp_path / "c.zarr"
+    assert main(["convert", str(capture), "--out", str(store), "--quiet"]) == 0
+    zarr_runs = [prefetched_run(["reconstruct", store, "--out", tmp_path / f"z{k}.h5"], cache) for k in (1, 2)]
+    assert (cache / "executables" / f"recent-reconstruct-{4 * 128 * 4 * 4 * 2}.txt").exists()
+    assert zarr_runs[1]["started"] > 0 and zarr_runs[1]["used"] > 0 and zarr_runs[1]["compiled"] == 0
 
     assert cli_command(["/usr/bin/python3", "/venv/bin/cohflash", "reconstruct", "c.h5"]) == "reconstruct"
     assert cli_command(["python", "-X", "importtime", "-m", "cohflash_jax.cli", "stream", "a.h5"]) == "stream"

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from ..fileio import OutputSet
-from ..process import cli_input_bytes, resume_garbage_collection
+from ..process import cli_capture_bytes, resume_garbage_collection
 from ..runtime import (
     EXECUTABLES,
     PREFETCH_COMMANDS,
@@ -84,7 +84,8 @@ def main(argv=None) -> int:
             with OutputSet():  # every output of the command renamed into place together, at the end
                 code = args.func(args)
         if args.command in PREFETCH_COMMANDS:  # the next run loads these while it imports
-            EXECUTABLES.remember(args.command, cli_input_bytes(["cohflash", *(sys.argv[1:] if argv is None else argv)]))
+            command_line = ["cohflash", *(sys.argv[1:] if argv is None else argv)]
+            EXECUTABLES.remember(args.command, cli_capture_bytes(command_line))
         return code
     except BrokenPipeError:  # e.g. `cohflash scenes | head` (before OSError, of which it is one)
         sys.stderr.close()
