@@ -23,7 +23,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from bench_process import Variant, timed
+from bench_process import Variant, platform_list, timed
 
 from cohflash_jax.runtime import cpu_description
 
@@ -39,7 +39,7 @@ def main():
     p.add_argument("--rounds", type=int, default=2, help="interleaved rounds")
     p.add_argument("--cold", action="store_true", help="also time each capture with an empty cache")
     args = p.parse_args()
-    platforms = list(dict.fromkeys(v.strip().lower() for v in args.platforms.split(",")))
+    platforms = platform_list(args.platforms)
     with tempfile.TemporaryDirectory(prefix="cohflash-bench-platforms-") as tmp:
         run(args, platforms, Path(tmp))
 

@@ -113,6 +113,11 @@ class Variant(NamedTuple):
         return f"{self.platforms}-{self.isa}"
 
 
+def platform_list(text: str) -> list[str]:
+    """Comma-separated JAX platforms as `JAX_PLATFORMS` reads them (any case), each once."""
+    return list(dict.fromkeys(v.strip().lower() for v in text.split(",")))
+
+
 def timed(argv: list[str], env: dict | None = None) -> float:
     t0 = time.perf_counter()
     subprocess.run(argv, check=True, env=env, stdout=subprocess.DEVNULL)
@@ -138,7 +143,7 @@ def main():
         "(as the environment and cohflash choose) or a JAX_PLATFORMS value such as cpu or cuda",
     )
     args = p.parse_args()
-    args.platforms = list(dict.fromkeys(v.strip().lower() for v in args.platforms.split(",")))
+    args.platforms = platform_list(args.platforms)
     # as XLA reads them (any case), each once: "avx2,AVX2" is one ISA, timed once
     named = (isa.strip() for isa in args.isas.split(","))
     args.isas = list(dict.fromkeys(isa if isa == "native" else isa.upper() for isa in named))

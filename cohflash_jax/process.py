@@ -195,8 +195,9 @@ def gpu_memory_on_demand_for_cli(argv) -> bool:
     return os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"].lower() in ("false", "0")
 
 
-# A `cohflash reconstruct` of a capture file smaller than this runs on the CPU even where JAX
-# has a GPU (`small_captures_on_cpu_for_cli`): 128×128 pixels of 3000 frames (376 MB) and less
+# A `cohflash reconstruct` of a capture (a file, or a Zarr store's frames) smaller than this runs
+# on the CPU even where JAX has a GPU (`small_captures_on_cpu_for_cli`): 128×128 pixels of 3000
+# frames (376 MB) and less
 GPU_MIN_CAPTURE_BYTES = 512 * 2**20
 # The commands that do: `stream` keeps the GPU, whose maps are faster once its process is warm
 CPU_FOR_SMALL_CAPTURES_COMMANDS = ("reconstruct",)

@@ -526,7 +526,7 @@ def test_a_cohflash_process_takes_gpu_memory_on_demand_unless_told_otherwise(mon
 
 
 def test_a_small_capture_is_reconstructed_on_the_cpu_unless_told_otherwise(monkeypatch, tmp_path):
-    """`cohflash reconstruct` on a capture file under `GPU_MIN_CAPTURE_BYTES` sets
+    """`cohflash reconstruct` on a capture (a file or a Zarr store) under `GPU_MIN_CAPTURE_BYTES` sets
     JAX_PLATFORMS=cpu before JAX starts (a GPU's backend start cost more than a region of
     interest's whole run); a larger capture, another command, a library user's or a test run's
     process, and a user's own JAX_PLATFORMS are left as they are."""
