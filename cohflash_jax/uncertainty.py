@@ -35,7 +35,7 @@ from .estimate.window_model import UniformModel, bin_weights, window_tables
 from .reconstruct import TilePlan, process_tile, program_plan
 from .runtime import async_filter_jit, quick_compile
 from .status import Status
-from .tiling import QUICK_COMPILE_MAX_PIXELS
+from .tiling import QUICK_COMPILE_MAX_PIXELS, pixel_bucket
 
 PARAMETERS = ("depth_offset_mm", "amplitude", "carrier_phase_rad")
 LABELS = ("depth − ML (mm)", "amplitude A (DN)", "carrier phase δφ (rad)")
@@ -61,10 +61,29 @@ def pixel_data(plan: TilePlan, frames, window_bins: int, dark=None, gain=None) -
     NumPy (a pixel is then taken out without a compiled indexing operation). The plan goes in
     as the programs take it (`program_plan`): another calibration's τ_sys or another
     threshold runs the program already compiled. A few pixels (what is sampled: each posterior
-    takes a second or so) are compiled for a short compile (`runtime.quick_compile`)."""
-    with quick_compile(frames.shape[-1] <= QUICK_COMPILE_MAX_PIXELS):
+    takes a second or so) are compiled for a short compile (`runtime.quick_compile`), and
+    padded with blank pixels to their `tiling.pixel_bucket`, as a region of interest is: one
+    program serves any few pixels (each pixel's fields depend on its own frames alone)."""
+    count = frames.shape[-1]
+    few = count <= QUICK_COMPILE_MAX_PIXELS
+    frames, dark, gain = pad_pixels(pixel_bucket(count) if few else count, frames, dark, gain)
+    with quick_compile(few):
         fields = _pixel_data(program_plan(plan), frames, window_bins, dark, gain)
-    return PixelData(*(np.asarray(x) for x in fields))
+    return PixelData(*(np.asarray(x)[:count] for x in fields))
+
+
+def pad_pixels(width: int, frames, dark=None, gain=None) -> tuple:
+    """Frames (4, N, P) and per-pixel maps (4, P) with blank pixels appended up to `width`
+    (frames and offsets 0, gains 1), on the host: the padding compiles nothing."""
+    count = frames.shape[-1]
+    if width == count:
+        return frames, dark, gain
+    pad = lambda a, value: (
+        None
+        if a is None
+        else np.pad(np.asarray(a), [(0, 0)] * (np.ndim(a) - 1) + [(0, width - count)], constant_values=value)
+    )
+    return pad(frames, 0), pad(dark, 0), pad(gain, 1)
 
 
 @async_filter_jit
