@@ -87,6 +87,21 @@ def test_crlb_scaling_laws():
     assert far["crlb_mm"] / a["crlb_mm"] == pytest.approx(2.0, rel=2e-2)
 
 
+def test_a_sweeps_batches_of_any_size_run_one_bound_program_per_frame_count():
+    """`crlb_rows` pads the points of one N to their `point_bucket` (the first point again): a
+    sweep's chunks group their points by N in varying numbers, and batches of one, three and
+    five points of one N trace one program between them; each row is the point's row alone."""
+    targets = ((3.0, 30.5), (4.0, 12.0), (5.0, 20.0), (6.0, 7.0), (2.0, 40.0))
+    points = [
+        design.complete_point(dict(start_ghz=0.0, num_steps=384, bandwidth_ghz=b, distance_m=d)) for b, d in targets
+    ]
+    alone = [design.crlb_rows([p])[0] for p in points]
+    before = len(TRACES)
+    three, five = design.crlb_rows(points[:3]), design.crlb_rows(points)
+    assert len(TRACES) == before, "a batch of another size traced a program of its own"
+    assert three == alone[:3] and five == alone
+
+
 def test_a_new_target_power_or_frame_rate_runs_the_compiled_design_programs():
     """The design programs take a problem's numbers as values (`DesignProblem.as_values`): a
     user trying another target, power, frame rate or most frames waits for no compile (only the

@@ -75,6 +75,17 @@ def _crlb_points(
     return jax.vmap(one)(start_hz, step_hz, distance_m, power_w, exposure_s, beta, bias, reflectance)
 
 
+# A batch of points of one N is padded to a power of two of at least this many points: a
+# sweep's chunks group their points by N in varying numbers, and each number was a program
+MIN_POINT_BUCKET = 8
+
+
+def point_bucket(count: int) -> int:
+    """The padded batch of `count` points of one N (`_crlb_points`): the next power of two,
+    at least `MIN_POINT_BUCKET`."""
+    return max(MIN_POINT_BUCKET, 1 << (max(1, count) - 1).bit_length())
+
+
 def crlb_rows(points: list[dict]) -> list[dict]:
     """CRLB columns for completed points (paper units), vectorised over points with the same N."""
     out = [None] * len(points)
@@ -83,6 +94,7 @@ def crlb_rows(points: list[dict]) -> list[dict]:
         by_n.setdefault((int(p["num_steps"]), bool(p["range_falloff"])), []).append(i)
     for (n, falloff), idx in by_n.items():
         si = [to_si(points[i]) for i in idx]
+        si += si[:1] * (point_bucket(len(si)) - len(si))  # the first point again: finite, discarded
         col = lambda k, si=si: jnp.asarray([s[k] for s in si], jnp.float64)
         locked, freq_only, echo = _crlb_points(
             col("start_hz"),
