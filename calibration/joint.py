@@ -198,11 +198,12 @@ def predict(params, layout: Layout, object_points):
 
 
 @functools.partial(jax.jit, static_argnums=1)
-def normal_equations(params, layout: Layout, object_points, observed, weight):
-    """(JᵀJ, Jᵀr, |r|²) of the weighted residuals at `params`."""
+def normal_equations(params, layout: Layout, object_points, observed, weight, blank):
+    """(JᵀJ, Jᵀr, |r|²) of the weighted residuals at `params`, JᵀJ with 1 added on the diagonal
+    where `blank` is 1 (the parameters of blank views, which no residual sees: `solve`)."""
     r = weighted_residuals(params, layout, object_points, observed, weight)
     jac = jax.jacfwd(weighted_residuals)(params, layout, object_points, observed, weight)
-    return jac.T @ jac, jac.T @ r, r @ r
+    return jac.T @ jac + jnp.diag(blank), jac.T @ r, r @ r
 
 
 @functools.partial(jax.jit, static_argnums=4)
@@ -214,25 +215,42 @@ def trial_cost(params, jtj, g, lam, layout: Layout, object_points, observed, wei
     return step, jnp.where(jnp.all(jnp.isfinite(step)), r @ r, jnp.inf)
 
 
+# The solve's programs hold the views in multiples of this many: they are compiled for a
+# number of views, and a rig recalibrated with a few views more or fewer runs the programs
+# compiled already. The views beyond the rig's are blank (no corner seen)
+VIEW_BUCKET = 8
+
+
 def solve(initial: np.ndarray, layout: Layout, object_points: np.ndarray, observed: np.ndarray, seen: np.ndarray):
     """Joint solve from `initial` on `observed` corners (cameras, views, corners, 2) where
     `seen` (cameras, views, corners) is True; rejects outlier corners and views, re-solving
-    until the inlier set is stable, and states the covariance σ²·(JᵀJ)⁻¹ over the inliers."""
+    until the inlier set is stable, and states the covariance σ²·(JᵀJ)⁻¹ over the inliers.
+
+    The views are padded to a multiple of `VIEW_BUCKET` with blank ones, each posed as the
+    first view: no residual sees a blank view's pose, so its block of JᵀJ is set to the
+    identity (its Marquardt step is then 0, exactly) and it is cut from the solution; the
+    rig's own block of JᵀJ, its steps and its covariance are those of the unpadded solve."""
+    padded = Layout(layout.cameras, -(-layout.views // VIEW_BUCKET) * VIEW_BUCKET)
+    extra = padded.views - layout.views
     obj = jnp.asarray(object_points, jnp.float64)
-    obs = jnp.asarray(np.nan_to_num(observed), jnp.float64)
+    obs = jnp.asarray(np.pad(np.nan_to_num(observed), ((0, 0), (0, extra), (0, 0), (0, 0))), jnp.float64)
+    blank = jnp.asarray(np.arange(padded.size) >= layout.size, jnp.float64)
     inliers = seen.copy()
     dropped = {}
-    x = np.asarray(initial, np.float64)
+    initial = np.asarray(initial, np.float64)
+    x = np.concatenate([initial, np.tile(initial[layout.board_pose(0)], extra)])
+    weights = lambda inliers: jnp.asarray(np.pad(inliers, ((0, 0), (0, extra), (0, 0))), jnp.float64)
 
     def fitted(x, inliers):
-        """Levenberg–Marquardt on the inliers from x: (x, errors of every corner (…, 2))."""
-        w = jnp.asarray(inliers, jnp.float64)
+        """Levenberg–Marquardt on the inliers from x (padded): (x, errors of every corner (…, 2))."""
+        w = weights(inliers)
         x = levenberg_marquardt(
-            lambda p: normal_equations(p, layout, obj, obs, w),
-            lambda p, a, b, lam: trial_cost(p, a, b, lam, layout, obj, obs, w),
+            lambda p: normal_equations(p, padded, obj, obs, w, blank),
+            lambda p, a, b, lam: trial_cost(p, a, b, lam, padded, obj, obs, w),
             x,
         )
-        return x, np.asarray(predict(jnp.asarray(x), layout, obj)) - np.asarray(observed)
+        predicted = np.asarray(predict(jnp.asarray(x), padded, obj))[:, : layout.views]
+        return x, predicted - np.asarray(observed)
 
     for _ in range(MAX_ROUNDS):
         x, err = fitted(x, inliers)
@@ -264,14 +282,14 @@ def solve(initial: np.ndarray, layout: Layout, object_points: np.ndarray, observ
         inliers = new
     else:  # the rounds ran out on a changed inlier set: fit it before stating anything of it
         x, err = fitted(x, inliers)
-    w = jnp.asarray(inliers, jnp.float64)
-    jtj, _, cost = normal_equations(jnp.asarray(x), layout, obj, obs, w)
+    jtj, _, cost = normal_equations(jnp.asarray(x), padded, obj, obs, weights(inliers), blank)
     dof = max(int(inliers.sum()) * 2 - layout.size, 1)
     sigma2 = float(cost) / dof
-    cov = sigma2 * np.linalg.pinv(np.asarray(jtj))
+    n = layout.size  # the rig's own parameters: the blank views' block is uncoupled from them
+    cov = sigma2 * np.linalg.pinv(np.asarray(jtj)[:n, :n])
     err = np.where(seen[..., None], err, np.nan)
     rms = rms_px(err[inliers])
-    return JointSolution(x, cov, layout, inliers, err, float(np.sqrt(sigma2)), rms, dropped)
+    return JointSolution(np.asarray(x)[:n], cov, layout, inliers, err, float(np.sqrt(sigma2)), rms, dropped)
 
 
 def pixel_map(intrinsics_ref, pose, intrinsics_cam, pixels, distance_mm, mirrored_width):

@@ -142,3 +142,43 @@ def test_xor_thresholds_come_from_covered_pixels_only():
     map_x[:, : int(0.4 * w)] = -5.0  # not covered
     map_y = yy.astype(np.float32)
     assert xor_ratio(img, img, map_x, map_y) == 0.0
+
+
+def test_blank_views_pad_the_solve_to_its_bucket_and_change_nothing(monkeypatch):
+    """`solve` pads the views to a multiple of `VIEW_BUCKET` with blank ones, so that rigs of
+    9 and 13 views run the programs 10 views compiled (no program traced), and the blank
+    views change nothing: the solution, its covariance, σ and inliers equal those of the solve
+    without padding (`VIEW_BUCKET` 1) to rounding."""
+    import jax
+
+    x_true = truth()
+    clean = np.asarray(joint.predict(jnp.asarray(x_true), LAYOUT, jnp.asarray(OBJ)))
+    observed = clean + NOISE_PX * np.random.default_rng(3).standard_normal(clean.shape)
+    seen = np.ones(clean.shape[:3], bool)
+    start = x_true * (1 + 1e-4 * np.random.default_rng(4).standard_normal(x_true.size))
+    padded = joint.solve(start, LAYOUT, OBJ, observed, seen)
+    traces = []
+    listen = lambda event, duration, **_: (
+        traces.append(event) if event == "/jax/core/compile/jaxpr_trace_duration" else None
+    )
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        for views in (9, 13):
+            layout = joint.Layout(4, views)
+            reps = -(-views // LAYOUT.views)
+            poses = np.tile(start[LAYOUT.board_pose(0).start :], reps)[: views * 6]
+            more = np.concatenate([start[: LAYOUT.board_pose(0).start], poses])
+            obs = np.concatenate([observed] * reps, axis=1)[:, :views]
+            joint.solve(more, layout, OBJ, obs, np.ones(obs.shape[:3], bool))
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert not traces, "a rig of another number of views traced programs of its own"
+    monkeypatch.setattr(joint, "VIEW_BUCKET", 1)
+    alone = joint.solve(start, LAYOUT, OBJ, observed, seen)
+    np.testing.assert_allclose(padded.params, alone.params, rtol=1e-9, atol=1e-9)
+    # the covariance of an ill-conditioned JᵀJ: to rounding of its largest entries, its σ closer
+    scale = np.abs(alone.covariance).max()
+    np.testing.assert_allclose(padded.covariance, alone.covariance, rtol=0, atol=1e-5 * scale)
+    np.testing.assert_allclose(np.diag(padded.covariance), np.diag(alone.covariance), rtol=1e-5)
+    assert padded.sigma_px == pytest.approx(alone.sigma_px, rel=1e-9)
+    np.testing.assert_array_equal(padded.inliers, alone.inliers)
