@@ -16,6 +16,7 @@ from cohflash_jax.constants import SPEED_OF_LIGHT_M_PER_S as C
 from cohflash_jax.fisher import depth_crlb_m
 
 from .closed_forms import closed_form_noise_and_amplitude, crlb_frequency_only_m, crlb_phase_locked_m
+from .jax_events import traces_counted
 
 # its module fixtures are costly: every test of the module on one xdist worker (make test: --dist loadgroup)
 pytestmark = pytest.mark.xdist_group("test_design")
@@ -40,29 +41,22 @@ def _crlb(**point):
     return design.crlb_rows([full])[0]
 
 
-# every program JAX traces in this process (a jitted call it has traced before traces nothing)
-TRACES = []
-jax.monitoring.register_event_duration_secs_listener(
-    lambda event, duration, **_: TRACES.append(event) if event == "/jax/core/compile/jaxpr_trace_duration" else None
-)
-
-
 def test_a_bound_on_the_host_is_one_program_per_sweep_length():
     """`depth_crlb_m` called outside a transformation: a new sweep length traces one program (op
     by op, the forward model's Jacobian traced and compiled ~100), an instrument of other numbers
     (power, β, roll-off, target) none, and its bound is the one traced inline in a caller's
     program (the design's)."""
     first = cf.Instrument.paper(47)
-    before = len(TRACES)
-    depth_crlb_m(first, 30.5, 0.5).block_until_ready()
-    assert len(TRACES) - before <= 2
+    with traces_counted() as traced:
+        depth_crlb_m(first, 30.5, 0.5).block_until_ready()
+    assert len(traced) <= 2
     other = first.replace(
         modulator=cf.MZM(modulation_index=2.5, rolloff_3db_hz=4e9),
         link=cf.LinkBudget(probe_power_w=0.03),
     )
-    before = len(TRACES)
-    on_host = float(depth_crlb_m(other, 12.0, 0.3))
-    assert len(TRACES) == before
+    with traces_counted() as traced:
+        on_host = float(depth_crlb_m(other, 12.0, 0.3))
+    assert not traced
     inline = float(jax.jit(lambda inst, d, rho: depth_crlb_m(inst, d, rho))(other, 12.0, 0.3))
     assert on_host == pytest.approx(inline, rel=1e-12) and on_host != pytest.approx(
         float(depth_crlb_m(first, 30.5, 0.5))
@@ -96,9 +90,9 @@ def test_a_sweeps_batches_of_any_size_run_one_bound_program_per_frame_count():
         design.complete_point(dict(start_ghz=0.0, num_steps=384, bandwidth_ghz=b, distance_m=d)) for b, d in targets
     ]
     alone = [design.crlb_rows([p])[0] for p in points]
-    before = len(TRACES)
-    three, five = design.crlb_rows(points[:3]), design.crlb_rows(points)
-    assert len(TRACES) == before, "a batch of another size traced a program of its own"
+    with traces_counted() as traced:
+        three, five = design.crlb_rows(points[:3]), design.crlb_rows(points)
+    assert not traced, "a batch of another size traced a program of its own"
     assert three == alone[:3] and five == alone
 
 

@@ -9,6 +9,8 @@ import pytest
 from cohflash_calibration import joint
 from cohflash_calibration.board import Board
 
+from .jax_events import traces_counted
+
 # its module fixtures are costly: every test of the module on one xdist worker (make test: --dist loadgroup)
 pytestmark = pytest.mark.xdist_group("test_joint_solve")
 
@@ -149,20 +151,13 @@ def test_blank_views_pad_the_solve_to_its_bucket_and_change_nothing(monkeypatch)
     9 and 13 views run the programs 10 views compiled (no program traced), and the blank
     views change nothing: the solution, its covariance, σ and inliers equal those of the solve
     without padding (`VIEW_BUCKET` 1) to rounding."""
-    import jax
-
     x_true = truth()
     clean = np.asarray(joint.predict(jnp.asarray(x_true), LAYOUT, jnp.asarray(OBJ)))
     observed = clean + NOISE_PX * np.random.default_rng(3).standard_normal(clean.shape)
     seen = np.ones(clean.shape[:3], bool)
     start = x_true * (1 + 1e-4 * np.random.default_rng(4).standard_normal(x_true.size))
     padded = joint.solve(start, LAYOUT, OBJ, observed, seen)
-    traces = []
-    listen = lambda event, duration, **_: (
-        traces.append(event) if event == "/jax/core/compile/jaxpr_trace_duration" else None
-    )
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
+    with traces_counted() as traced:
         for views in (9, 13):
             layout = joint.Layout(4, views)
             reps = -(-views // LAYOUT.views)
@@ -170,9 +165,7 @@ def test_blank_views_pad_the_solve_to_its_bucket_and_change_nothing(monkeypatch)
             more = np.concatenate([start[: LAYOUT.board_pose(0).start], poses])
             obs = np.concatenate([observed] * reps, axis=1)[:, :views]
             joint.solve(more, layout, OBJ, obs, np.ones(obs.shape[:3], bool))
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
-    assert not traces, "a rig of another number of views traced programs of its own"
+    assert not traced, "a rig of another number of views traced programs of its own"
     monkeypatch.setattr(joint, "VIEW_BUCKET", 1)
     alone = joint.solve(start, LAYOUT, OBJ, observed, seen)
     np.testing.assert_allclose(padded.params, alone.params, rtol=1e-9, atol=1e-9)
