@@ -115,7 +115,9 @@ def async_filter_jit(fun=None, *, loop_emitters: bool = False):
     returning as soon as the work is queued. `eqx.filter_jit` (equinox 0.13) waits for every
     call to finish (it blocks on a marker output, for its runtime-error reporting), so a
     pipeline of filter-jitted programs never overlapped file reads and host copies with
-    computation. Outputs: arrays only; no runtime errors are raised from inside, so
+    computation. Outputs: arrays in plain containers (dicts, tuples, lists: an equinox
+    module's structure does not come back from the executable cache, `trees_come_back`); no
+    runtime errors are raised from inside, so
     `eqx.error_if` does not belong in `fun`. Its matrix products run at `MATMUL_PRECISION`.
 
     Each program (one per static half and argument shapes, types and devices) is compiled
@@ -588,12 +590,16 @@ class ExecutableCache:
         return compiled
 
     def _write(self, path: Path, compiled):
+        """Write `compiled` to `path`, where a later process can load it (`trees_come_back`)."""
         import pickle
 
         try:
             from jax.experimental.serialize_executable import serialize
 
-            blob = pickle.dumps(serialize(compiled))
+            serialized = serialize(compiled)
+            if not trees_come_back(serialized[1:]):
+                return
+            blob = pickle.dumps(serialized)
         except Exception:  # not serialisable (closed-over constants, …): stays in this process
             return
         if replace_file(path, blob):
@@ -601,6 +607,20 @@ class ExecutableCache:
 
     def bound(self):
         bound_folder(self.folder, "*.exe", self.MAX_BYTES)
+
+
+def trees_come_back(trees) -> bool:
+    """Whether the argument and output structures of an executable (`serialize`'s in_tree,
+    out_tree) are the same after a trip through pickle. An equinox module's structure is not
+    (its field sentinel comes back a copy): an entry of a program returning one would load,
+    fail at its first call and be compiled again in every process (`_checked`), so such a
+    program stays in its process, and programs return plain containers of arrays."""
+    import pickle
+
+    try:
+        return all(pickle.loads(pickle.dumps(tree)) == tree for tree in trees)
+    except Exception:
+        return False
 
 
 # How long a process waits for another one's compile of the same program before compiling it too

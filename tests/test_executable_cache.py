@@ -8,6 +8,8 @@ import subprocess
 import sys
 import textwrap
 
+import equinox as eqx
+import jax
 import numpy as np
 import pytest
 
@@ -74,6 +76,45 @@ def test_a_static_half_without_stable_text_stays_in_memory():
     structure = lambda rule: jax.tree.structure(((Part(rule, jnp.ones(2)),), ()))
     assert EXECUTABLES.key(fun, ((), ()), structure(lambda v: v), ()) is None
     assert EXECUTABLES.key(fun, ((), ()), structure("named"), ()) is not None
+
+
+class Halves(eqx.Module):
+    """A program's output as a module (`test_a_program_returning_a_module_stays_in_memory…`):
+    defined at module level, as the package's modules are, so that pickle finds its class."""
+
+    low: jax.Array
+    high: jax.Array
+
+
+def test_a_program_returning_a_module_stays_in_memory_and_one_returning_a_dict_is_written(tmp_path, monkeypatch):
+    """An executable whose output is an equinox module does not come back from the cache (its
+    output structure is not the same after pickle: the loaded program failed at its first call
+    and was compiled again in every process). Such a program is not written; one returning a
+    dict of the same arrays is, and loads."""
+    import jax
+    import jax.numpy as jnp
+
+    from cohflash_jax import runtime
+
+    assert not runtime.trees_come_back([jax.tree.structure(Halves(jnp.zeros(1), jnp.ones(1)))])
+    assert runtime.trees_come_back([jax.tree.structure({"low": 0, "high": (1, 2)})])
+
+    def halves_module(x):
+        return Halves(x - 1.0, x + 1.0)
+
+    def halves_dict(x):
+        return {"low": x - 1.0, "high": x + 1.0}
+
+    monkeypatch.setattr(runtime.EXECUTABLES, "folder", tmp_path)
+    x = jnp.arange(3.0)
+    assert float(runtime.async_filter_jit(halves_module)(x).high[2]) == 3.0
+    assert float(runtime.async_filter_jit(halves_dict)(x)["low"][0]) == -1.0
+    assert [p.name.split("-")[0] for p in tmp_path.glob("*.exe")] == ["halves_dict"]
+    loaded, compiled = runtime.EXECUTABLES.loaded, runtime.EXECUTABLES.compiled
+    # as a later process finds them (a new wrapper keeps no program in memory)
+    np.testing.assert_array_equal(runtime.async_filter_jit(halves_dict)(x)["high"], [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(runtime.async_filter_jit(halves_module)(x).low, [-1.0, 0.0, 1.0])
+    assert (runtime.EXECUTABLES.loaded - loaded, runtime.EXECUTABLES.compiled - compiled) == (1, 1)
 
 
 def test_quick_compiled_programs_are_kept_apart_and_agree_with_optimised_ones():
