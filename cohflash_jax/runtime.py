@@ -117,8 +117,8 @@ def async_filter_jit(fun=None, *, loop_emitters: bool = False):
     pipeline of filter-jitted programs never overlapped file reads and host copies with
     computation. Outputs: arrays in plain containers (dicts, tuples, lists: an equinox
     module's structure does not come back from the executable cache, `trees_come_back`); no
-    runtime errors are raised from inside, so
-    `eqx.error_if` does not belong in `fun`. Its matrix products run at `MATMUL_PRECISION`.
+    runtime errors are raised from inside, so `eqx.error_if` does not belong in `fun`. Its
+    matrix products run at `MATMUL_PRECISION`.
 
     Each program (one per static half and argument shapes, types and devices) is compiled
     once per process, and where the executable cache is on (`enable_compilation_cache`) it is
