@@ -91,7 +91,6 @@ def test_a_program_returning_a_module_stays_in_memory_and_one_returning_a_dict_i
     output structure is not the same after pickle: the loaded program failed at its first call
     and was compiled again in every process). Such a program is not written; one returning a
     dict of the same arrays is, and loads."""
-    import jax
     import jax.numpy as jnp
 
     from cohflash_jax import runtime
