@@ -55,9 +55,15 @@ def rows_per_tile(shape: tuple[int, int, int], itemsize: int = 2, tile_rows: int
     return min(h, DEFAULT_TILE_ROWS * max(1, TILE_FRAME_BYTES // max(1, chunk_bytes)))
 
 
+def power_of_two_bucket(count: int, minimum: int) -> int:
+    """The next power of two at or above `count`, at least `minimum`: the size work of `count`
+    items is padded to, so that nearby counts share one compiled program."""
+    return max(minimum, 1 << (max(1, count) - 1).bit_length())
+
+
 def pixel_bucket(num_pixels: int) -> int:
     """The padded pixel count of a small capture: the next power of two, at least `MIN_PIXEL_BUCKET`."""
-    return max(MIN_PIXEL_BUCKET, 1 << (max(1, num_pixels) - 1).bit_length())
+    return power_of_two_bucket(num_pixels, MIN_PIXEL_BUCKET)
 
 
 def sub_tile_pixels(num_pixels: int, num_frames: int, platform: str) -> int:

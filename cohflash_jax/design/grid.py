@@ -19,6 +19,7 @@ import numpy as np
 from ..fileio import atomic_path
 from ..fisher import depth_crlb_m
 from ..progress import progress_bar
+from ..tiling import power_of_two_bucket
 from .monte_carlo import monte_carlo
 from .parameters import PARAMETERS, ambiguity_m, complete_point, design_instrument, to_si
 
@@ -83,7 +84,7 @@ MIN_POINT_BUCKET = 8
 def point_bucket(count: int) -> int:
     """The padded batch of `count` points of one N (`_crlb_points`): the next power of two,
     at least `MIN_POINT_BUCKET`."""
-    return max(MIN_POINT_BUCKET, 1 << (max(1, count) - 1).bit_length())
+    return power_of_two_bucket(count, MIN_POINT_BUCKET)
 
 
 def crlb_rows(points: list[dict]) -> list[dict]:
