@@ -49,7 +49,9 @@ step "where a whole GPU process's time goes (warm cache, 1 round)"
 timed 150 "$py" benchmarks/bench_stages.py --capture "$work/traffic.h5" --rounds 1
 
 step "tests that exercise the reconstruction on the GPU"
-XLA_PYTHON_CLIENT_PREALLOCATE=false timed 200 "$py" -m pytest -q -p no:cacheprovider -n 4 \
+# the image may lack Zarr (a dependency the checkout's install would bring): its tests left out
+"$py" -c "import zarr" 2>/dev/null && only=() || { only=(-k "not zarr"); echo "no zarr here: its tests left out"; }
+XLA_PYTHON_CLIENT_PREALLOCATE=false timed 200 "$py" -m pytest -q -p no:cacheprovider -n 4 "${only[@]}" \
     tests/test_inversion.py tests/test_detection.py tests/test_honest_sigma.py tests/test_short_sweeps.py \
     tests/test_executable_cache.py
 step done

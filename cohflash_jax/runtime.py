@@ -376,7 +376,10 @@ class ExecutableCache:
         text = f"{static!r}|{treedef}"
         if " at 0x" in text:
             return None
-        shapes = repr([(shape, dtype, weak, self.placement(sh)) for shape, dtype, weak, sh in signature])
+        # element types by name (JAX's key types too): a program takes the native type whatever
+        # byte order an input's dtype spells out (a Zarr store's frames are dtype('<u2'), an
+        # HDF5 file's dtype('uint16'))
+        shapes = repr([(shape, str(dtype.name), weak, self.placement(sh)) for shape, dtype, weak, sh in signature])
         parts = (self.environment(), fun.__module__, fun.__qualname__, text, shapes)
         whole = "|".join(parts + (("quick",) if quick else ()) + (("loop-emitters",) if loop_emitters else ()))
         return f"{fun.__name__.strip('_')}-{hashlib.sha256(whole.encode()).hexdigest()[:40]}.exe"

@@ -78,6 +78,20 @@ def test_a_static_half_without_stable_text_stays_in_memory():
     assert EXECUTABLES.key(fun, ((), ()), structure("named"), ()) is not None
 
 
+def test_an_entry_is_named_by_element_type_not_by_how_a_dtype_spells_its_byte_order():
+    """A Zarr store's frames come as dtype('<u2'), an HDF5 file's as dtype('uint16'): the same
+    program, one entry (its name once took the dtype's text, so a Zarr store's first run wrote
+    an entry its next run, reading the first tile another way, did not find)."""
+    from cohflash_jax.runtime import EXECUTABLES
+
+    fun = test_an_entry_is_named_by_element_type_not_by_how_a_dtype_spells_its_byte_order
+    spelled = np.zeros(4, np.dtype("uint16").newbyteorder("<"))
+    assert repr(spelled.dtype) != repr(np.dtype("uint16"))  # the two spellings
+    name = lambda x: EXECUTABLES.key(fun, (), None, ((x.shape, x.dtype, False, None),))  # as a call signs a NumPy input
+    assert name(spelled) == name(np.zeros(4, np.uint16)) != name(np.zeros(4, np.int16))
+    assert name(np.zeros(4, np.float16)) != name(np.zeros(4, jax.numpy.bfloat16))
+
+
 class Halves(eqx.Module):
     """A program's output as a module (`test_a_program_returning_a_module_stays_in_memory…`):
     defined at module level, as the package's modules are, so that pickle finds its class."""
@@ -430,14 +444,6 @@ def test_a_reconstruct_process_loads_its_last_runs_programs_while_it_imports(tmp
     third, depth3, _ = run(3)
     assert third["used"] == len(names) - 1 and third["compiled"] == 1
     np.testing.assert_array_equal(depth3, depth)
-    # a Zarr store (a folder) is known by its frames' size, not by a depth file the run writes
-    # (larger than so small a store's frames), so its runs, each to a new depth file, start
-    # loading their last run's programs too
-    store = tmp_path / "c.zarr"
-    assert main(["convert", str(capture), "--out", str(store), "--quiet"]) == 0
-    zarr_runs = [prefetched_run(["reconstruct", store, "--out", tmp_path / f"z{k}.h5"], cache) for k in (1, 2)]
-    assert (cache / "executables" / f"recent-reconstruct-{4 * 128 * 4 * 4 * 2}.txt").exists()
-    assert zarr_runs[1]["started"] > 0 and zarr_runs[1]["used"] > 0 and zarr_runs[1]["compiled"] == 0
 
     assert cli_command(["/usr/bin/python3", "/venv/bin/cohflash", "reconstruct", "c.h5"]) == "reconstruct"
     assert cli_command(["python", "-X", "importtime", "-m", "cohflash_jax.cli", "stream", "a.h5"]) == "stream"
@@ -448,6 +454,21 @@ def test_a_reconstruct_process_loads_its_last_runs_programs_while_it_imports(tmp
     assert cli_input_bytes(["cohflash", "reconstruct", str(capture), "--out", str(tmp_path / "d1.h5")]) == (
         capture.stat().st_size
     )
+
+
+def test_a_zarr_store_run_loads_its_last_runs_programs_while_it_imports(tmp_path):
+    """A Zarr store (a folder) is known by its frames' size, not by a depth file the run writes
+    (larger than so small a store's frames), so its runs, each to a new depth file, start
+    loading their last run's programs too."""
+    from cohflash_jax.cli import main
+
+    capture, store, cache = tmp_path / "c.h5", tmp_path / "c.zarr", tmp_path / "cache"
+    assert main(["simulate", "planar", "--size", "4x4", "--steps", "128", "--out", str(capture), "--quiet"]) == 0
+    assert main(["convert", str(capture), "--out", str(store), "--quiet"]) == 0
+    zarr_runs = [prefetched_run(["reconstruct", store, "--out", tmp_path / f"z{k}.h5"], cache) for k in (1, 2)]
+    assert zarr_runs[0]["started"] == 0 and zarr_runs[0]["compiled"] >= 2
+    assert (cache / "executables" / f"recent-reconstruct-{4 * 128 * 4 * 4 * 2}.txt").exists()
+    assert zarr_runs[1]["started"] > 0 and zarr_runs[1]["used"] > 0 and zarr_runs[1]["compiled"] == 0
 
 
 def test_a_stream_over_two_cpu_streams_takes_its_last_runs_programs(tmp_path):
