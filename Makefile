@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.cohflash-installed
 
-.PHONY: demo test lint format bench clean
+.PHONY: demo test lint format bench bytecode clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -14,13 +14,18 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e ".[test]"
 	touch $(STAMP)
 
-demo: $(STAMP)
+# the packages' bytecode, as a regular install leaves it (an editable install runs the
+# sources; where Python may not write bytecode, every process would compile them again)
+bytecode: $(STAMP)
+	$(PY) -m compileall -q cohflash_jax calibration experiments
+
+demo: bytecode
 	$(VENV)/bin/cohflash demo --out out/demo
 
 test: lint
 	$(PY) -m pytest -q -n 2 --dist loadgroup
 
-lint: $(STAMP)
+lint: bytecode
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
@@ -28,7 +33,7 @@ format: $(STAMP)
 	$(VENV)/bin/ruff format .
 	$(VENV)/bin/ruff check --fix .
 
-bench: $(STAMP)
+bench: bytecode
 	$(PY) benchmarks/bench_simulate.py
 	$(PY) benchmarks/bench_reconstruct.py
 	$(PY) benchmarks/bench_process.py

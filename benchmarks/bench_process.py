@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 from typing import NamedTuple
 
-from cohflash_jax.process import allocator_description
+from cohflash_jax.process import allocator_description, compile_package_bytecode
 from cohflash_jax.runtime import cpu_description
 
 READ_ONCE = """
@@ -158,6 +158,8 @@ def run(args, folder: Path):
     import jax
     import jaxlib
 
+    bytecode = compile_package_bytecode()  # the package as an install leaves it, before any timing
+
     capture = args.capture
     cli = [sys.executable, "-m", "cohflash_jax.cli"]
     if capture is None:
@@ -206,6 +208,7 @@ def run(args, folder: Path):
     )
     print(f"JAX device: {jax.devices()[0].device_kind} ({jax.default_backend()})")
     print(allocator_description())
+    print(bytecode)
     print(f"capture {capture}; {args.rounds} interleaved rounds, medians; whole processes")
     print(f"{'what':56s} {'seconds':>8s} {'× floor':>8s} {'NumPy ÷ it':>10s}")
     for name, values in rows.items():

@@ -34,7 +34,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from cohflash_jax.process import allocator_description, allocator_environment
+from cohflash_jax.process import allocator_description, allocator_environment, compile_package_bytecode
 from cohflash_jax.runtime import cpu_description
 
 WHOLE = r"""
@@ -156,6 +156,7 @@ def main():
 
     print(f"{cpu_description()}; JAX {jax.__version__}, jaxlib {jaxlib.__version__}; capture {args.capture}")
     print(allocator_description())
+    print(compile_package_bytecode())  # the package as an install leaves it, before any timing
     with tempfile.TemporaryDirectory(prefix="cohflash-bench-stages-") as tmp:
         tmp = Path(tmp)
         cache = tmp / "cache"

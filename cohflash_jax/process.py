@@ -168,6 +168,33 @@ def allocator_description() -> str:
     return f"allocator: mimalloc ({library}), preloaded into `cohflash {'`, `'.join(ALLOCATOR_COMMANDS)}`"
 
 
+# The packages a `cohflash` process imports from this checkout (an editable install)
+PACKAGE_NAMES = ("cohflash_jax", "cohflash_calibration", "cohflash_experiments")
+
+
+def compile_package_bytecode() -> str:
+    """Compile the installed packages' modules to bytecode where theirs is missing or stale,
+    as a regular (non-editable) `pip install` does, and say so, as benchmarks print it.
+
+    An editable install runs the checkout's sources: Python writes their bytecode at the first
+    import, unless told not to (`PYTHONDONTWRITEBYTECODE`, set on some CI machines and VMs);
+    then every process compiles the package's ~70 modules again (~0.08 s of a warm full-capture
+    run, docs/performance.md). `make` compiles them when it installs; a benchmark calls this
+    first, so that it times the package as installed."""
+    import compileall
+    import importlib.util
+
+    folders = []
+    for name in PACKAGE_NAMES:
+        spec = importlib.util.find_spec(name)
+        if spec is not None and spec.submodule_search_locations:
+            folders.extend(spec.submodule_search_locations)
+    compiled = all(compileall.compile_dir(folder, quiet=1) for folder in folders)
+    writes = "not written by Python here (PYTHONDONTWRITEBYTECODE)" if sys.dont_write_bytecode else "written by Python"
+    state = "compiled ahead" if compiled else "compiled ahead in part (a folder was not writable)"
+    return f"package bytecode: {state}; at imports {writes}"
+
+
 def started_as(argv) -> bool:
     """Whether this interpreter was started with the command line `argv` (Linux: its
     /proc/self/cmdline). A script that sets `sys.orig_argv` to look like a command (a test, a

@@ -561,6 +561,45 @@ def test_a_small_capture_is_reconstructed_on_the_cpu_unless_told_otherwise(monke
         assert os.environ.pop("JAX_PLATFORMS", None) == ("cpu" if on_cpu else None)
 
 
+def test_the_packages_bytecode_is_compiled_ahead_where_python_may_not_write_it(monkeypatch, tmp_path):
+    """`compile_package_bytecode` (what `make` and the benchmarks run) leaves every module of the
+    packages bytecode that a process told not to write any (`PYTHONDONTWRITEBYTECODE`, as on
+    some CI machines) loads instead of compiling the sources again; a module edited since is
+    compiled again by the next call."""
+    from cohflash_jax import process
+
+    package = tmp_path / "bytecode_probe"
+    package.mkdir()
+    (package / "__init__.py").write_text("from . import part\n")
+    (package / "part.py").write_text("VALUE = 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(process, "PACKAGE_NAMES", ("bytecode_probe", "no_such_package_here"))
+
+    def loaded_from():
+        """Where a fresh interpreter that may not write bytecode takes each module's code from."""
+        env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1", "PYTHONPATH": str(tmp_path)}
+        done = subprocess.run(
+            [sys.executable, "-v", "-c", "import bytecode_probe"], capture_output=True, text=True, env=env, check=True
+        )
+        return sorted(
+            line.split()[-1].strip("'")
+            for line in done.stderr.splitlines()
+            if "code object from" in line and "bytecode_probe" in line
+        )
+
+    assert all(path.endswith(".py") for path in loaded_from())  # compiled from the sources: no bytecode yet
+    assert "compiled ahead" in process.compile_package_bytecode()
+    tag = sys.implementation.cache_tag
+    assert [os.path.basename(p) for p in loaded_from()] == [f"__init__.{tag}.pyc", f"part.{tag}.pyc"]
+    edited = package / "part.py"
+    edited.write_text("VALUE = 22  # edited: another size\n")
+    later = edited.stat().st_mtime + 10  # compileall tells stale bytecode by whole seconds
+    os.utime(edited, (later, later))
+    assert [os.path.basename(p) for p in loaded_from()][1] == "part.py"  # stale bytecode is not used
+    process.compile_package_bytecode()
+    assert all(p.endswith(".pyc") for p in loaded_from())
+
+
 def test_a_cohflash_process_starts_again_on_mimalloc_where_it_is_installed(monkeypatch, tmp_path):
     """A `cohflash reconstruct` interpreter runs itself again (`os.execve`, the same command line)
     with mimalloc preloaded, where the library is installed: once (not where LD_PRELOAD names it
