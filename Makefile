@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 # the packages' bytecode, as a regular install leaves it (an editable install runs the
 # sources; where Python may not write bytecode, every process would compile them again)
 bytecode: $(STAMP)
-	$(PY) -m compileall -q cohflash_jax calibration experiments
+	$(PY) -c "from cohflash_jax.process import compile_package_bytecode; compile_package_bytecode()"
 
 demo: bytecode
 	$(VENV)/bin/cohflash demo --out out/demo

@@ -575,29 +575,27 @@ def test_the_packages_bytecode_is_compiled_ahead_where_python_may_not_write_it(m
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setattr(process, "PACKAGE_NAMES", ("bytecode_probe", "no_such_package_here"))
 
-    def loaded_from():
-        """Where a fresh interpreter that may not write bytecode takes each module's code from."""
+    def loaded_from() -> dict:
+        """Each module's file that a fresh interpreter, told not to write bytecode, takes its
+        code from (by the module file's stem)."""
         env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1", "PYTHONPATH": str(tmp_path)}
         done = subprocess.run(
             [sys.executable, "-v", "-c", "import bytecode_probe"], capture_output=True, text=True, env=env, check=True
         )
-        return sorted(
-            line.split()[-1].strip("'")
-            for line in done.stderr.splitlines()
-            if "code object from" in line and "bytecode_probe" in line
-        )
+        paths = [line.split()[-1].strip("'") for line in done.stderr.splitlines() if "code object from" in line]
+        return {os.path.basename(p).split(".")[0]: os.path.basename(p) for p in paths if "bytecode_probe" in p}
 
-    assert all(path.endswith(".py") for path in loaded_from())  # compiled from the sources: no bytecode yet
+    assert loaded_from() == {"__init__": "__init__.py", "part": "part.py"}  # no bytecode yet: compiled
     assert "compiled ahead" in process.compile_package_bytecode()
     tag = sys.implementation.cache_tag
-    assert [os.path.basename(p) for p in loaded_from()] == [f"__init__.{tag}.pyc", f"part.{tag}.pyc"]
+    assert loaded_from() == {"__init__": f"__init__.{tag}.pyc", "part": f"part.{tag}.pyc"}
     edited = package / "part.py"
     edited.write_text("VALUE = 22  # edited: another size\n")
     later = edited.stat().st_mtime + 10  # compileall tells stale bytecode by whole seconds
     os.utime(edited, (later, later))
-    assert [os.path.basename(p) for p in loaded_from()][1] == "part.py"  # stale bytecode is not used
+    assert loaded_from()["part"] == "part.py"  # stale bytecode is not used
     process.compile_package_bytecode()
-    assert all(p.endswith(".pyc") for p in loaded_from())
+    assert loaded_from() == {"__init__": f"__init__.{tag}.pyc", "part": f"part.{tag}.pyc"}
 
 
 def test_a_cohflash_process_starts_again_on_mimalloc_where_it_is_installed(monkeypatch, tmp_path):
