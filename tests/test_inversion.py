@@ -923,3 +923,43 @@ def test_every_matrix_product_of_the_programs_runs_at_full_float32_precision(met
     assert products, "no matrix product found: the walk missed the programs"
     highest = (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST)
     assert all(precision == highest for _, precision in products), products
+
+
+def test_a_value_computed_once_is_not_recomputed_in_every_kernel_that_spreads_it():
+    """`window_model.computed_once` leaves its values exactly as they are (a NaN in its own
+    element), and XLA's CPU code then computes a per-pixel sine and cosine once, in a kernel of
+    their own, instead of inside each kernel that spreads them over a window's bins (the
+    inversion's 10 float64 sines and cosines became 113 each there)."""
+    import re
+
+    from cohflash_jax.estimate.window_model import computed_once
+
+    x = jnp.linspace(0.0, 3.0, 64).at[5].set(jnp.nan)
+    bins_re, bins_im = jnp.linspace(0.0, 1.0, 17), jnp.linspace(1.0, 2.0, 17)
+
+    def spread(once: bool):
+        def over_bins(x):
+            c, s = (jnp.cos(x), jnp.sin(x) + 1.0)
+            if once:
+                c, s = computed_once((c, s))
+            a = c[:, None] * bins_re - s[:, None] * bins_im
+            b = s[:, None] * bins_re + c[:, None] * bins_im
+            return (a * b).sum(axis=1), (a + b).max(axis=1)
+
+        return jax.jit(over_bins).lower(x).compile()
+
+    def trig_in_bin_kernels(compiled) -> int:
+        """Sines and cosines inside computations that also touch the 17 bins (a kernel
+        that evaluates them once per bin)."""
+        blocks = re.split(r"\n(?=(?:ENTRY )?%\S+ \()", compiled.as_text())
+        trig = lambda block: len(re.findall(r" (?:sine|cosine)\(", block))
+        return sum(trig(block) for block in blocks if re.search(r"\[(?:\d+,)*17\]", block))
+
+    plain, once = spread(False), spread(True)
+    for a, b in zip(plain(x), once(x)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    values = (jnp.array([np.nan, 1.0, -0.0, np.inf]), jnp.array([2.0, -0.5, 3.0, 1e308]))
+    kept = jax.jit(computed_once)(values)
+    np.testing.assert_array_equal(np.asarray(kept[0]), [np.nan, 1.0, 0.0, np.inf])
+    np.testing.assert_array_equal(np.asarray(kept[1]), [2.0, -0.5, 3.0, 1e308])  # another value's NaN does not spread
+    assert trig_in_bin_kernels(plain) > 0 and trig_in_bin_kernels(once) == 0

@@ -26,6 +26,24 @@ from ..runtime import compiling_quick
 Phasors = tuple
 
 
+def computed_once(values):
+    """`values` (a pytree of arrays) unchanged, each computed once per element. XLA's CPU
+    fusion otherwise recomputes a per-pixel value inside every kernel that spreads it over the
+    window's bins or the basin grid: the inversion's 10 float64 sines and cosines became 113
+    each, every one evaluated per bin, and XLA drops optimisation barriers before it fuses. A
+    product with a constant, [x, 0]·[1, 0] = x (exactly, but for a negative zero's sign; a NaN
+    or an infinity stays in its own element), is not fused into elementwise kernels, so each
+    value is computed once and read where it is used (docs/performance.md). Other backends get
+    `values` as they are."""
+    if jax.default_backend() != "cpu":
+        return values
+    leaves, tree = jax.tree.flatten(values)
+    stacked = jnp.stack(jnp.broadcast_arrays(*leaves))
+    pairs = jnp.stack([stacked, jnp.zeros_like(stacked)], axis=-1)
+    unit = jnp.array([1.0, 0.0], stacked.dtype)
+    return jax.tree.unflatten(tree, list(jnp.matmul(pairs, unit, precision=jax.lax.Precision.HIGHEST)))
+
+
 def cmul(p, q):
     """Product of complex numbers held as (re, im) pairs."""
     return p[0] * q[0] - p[1] * q[1], p[0] * q[1] + p[1] * q[0]
@@ -102,7 +120,7 @@ def window_tables(k0: Int[Array, ""], width: int, n: int) -> WindowTables:
     step = np.pi * np.arange(width) / n
     k0 = jnp.asarray(k0)
     b0 = jnp.pi * k0.astype(jnp.float64) / n
-    c0, s0 = jnp.cos(b0), jnp.sin(b0)
+    c0, s0 = computed_once((jnp.cos(b0), jnp.sin(b0)))
     k = (k0 + jnp.arange(width)).astype(jnp.float64)
     return WindowTables(c0 * np.cos(step) - s0 * np.sin(step), s0 * np.cos(step) + c0 * np.sin(step), k)
 
@@ -150,13 +168,14 @@ class UniformModel(eqx.Module):
             turn(self.start_hz * tau),
             turn(0.5 * self.num_frames * self.step_hz * tau),
         )
-        return tuple((jnp.cos(v), jnp.sin(v)) for v in angles)
+        return computed_once(tuple((jnp.cos(v), jnp.sin(v)) for v in angles))
 
     def rotation(self, delta_m, xp=jnp) -> Phasors:
         """The factors that move `phasors` by `delta_m` of depth: e^{iκδ} for each angle's rate
         κ (rad/m). With xp=np and a fixed δ (the basin grid) they are constants of the
         compiled program."""
-        return tuple((xp.cos(k * delta_m), xp.sin(k * delta_m)) for k in self.angle_rates())
+        rotation = tuple((xp.cos(k * delta_m), xp.sin(k * delta_m)) for k in self.angle_rates())
+        return rotation if xp is np else computed_once(rotation)
 
     def angle_rates(self) -> tuple[float, float, float]:
         """How fast the three `phasors`' angles turn with depth (rad/m): a = πΔfτ, θ = 2πf₀τ
