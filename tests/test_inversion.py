@@ -962,4 +962,7 @@ def test_a_value_computed_once_is_not_recomputed_in_every_kernel_that_spreads_it
     kept = jax.jit(computed_once)(values)
     np.testing.assert_array_equal(np.asarray(kept[0]), [np.nan, 1.0, 0.0, np.inf])
     np.testing.assert_array_equal(np.asarray(kept[1]), [2.0, -0.5, 3.0, 1e308])  # another value's NaN does not spread
+    mixed = computed_once((jnp.float32(1.5), jnp.arange(3.0)))  # values of other shapes and types
+    assert mixed[0].dtype == jnp.float32 and mixed[0].shape == () and mixed[1].shape == (3,)
+    np.testing.assert_array_equal(np.asarray(mixed[1]), [0.0, 1.0, 2.0])
     assert trig_in_bin_kernels(plain) > 0 and trig_in_bin_kernels(once) == 0

@@ -38,10 +38,14 @@ def computed_once(values):
     if jax.default_backend() != "cpu":
         return values
     leaves, tree = jax.tree.flatten(values)
-    stacked = jnp.stack(jnp.broadcast_arrays(*leaves))
-    pairs = jnp.stack([stacked, jnp.zeros_like(stacked)], axis=-1)
-    unit = jnp.array([1.0, 0.0], stacked.dtype)
-    return jax.tree.unflatten(tree, list(jnp.matmul(pairs, unit, precision=jax.lax.Precision.HIGHEST)))
+
+    def once(x):  # x (K, ...): K values of one shape and type, in one product
+        unit = jnp.array([1.0, 0.0], x.dtype)
+        return jnp.matmul(jnp.stack([x, jnp.zeros_like(x)], axis=-1), unit, precision=jax.lax.Precision.HIGHEST)
+
+    if len({(jnp.shape(x), jnp.result_type(x)) for x in leaves}) == 1:
+        return jax.tree.unflatten(tree, list(once(jnp.stack(leaves))))
+    return jax.tree.unflatten(tree, [once(jnp.asarray(x)[None])[0] for x in leaves])
 
 
 def cmul(p, q):
