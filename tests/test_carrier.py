@@ -193,3 +193,30 @@ def test_the_surveys_frame_means_are_the_float64_means_exactly():
         means = frame_means(x)
         assert means.dtype == np.float64 and means.shape == (4, 3, 7)
         np.testing.assert_array_equal(means, np.mean(x, axis=1, dtype=np.float64))
+
+
+@pytest.mark.parametrize("drift_rad", [0.0, 0.3, 3.0])
+def test_the_surveys_sampled_gram_gives_the_leading_singular_pairs_of_every_row(drift_rad):
+    """The survey finds the moving average's leading singular directions from every 8th row
+    (`drift.GRAM_ROW_STEP`) and measures them on every row: its two largest singular values are
+    the full SVD's to 0.5 %, and where a drift stands out, its left vector is the full SVD's,
+    whether there is no drift (nearly equal values: pure noise), a weak one or a strong one."""
+    from cohflash_jax.estimate.drift import GRAM_ROW_STEP, leading_singular_pairs
+    from cohflash_jax.estimate.iq import DRIFT_WINDOW_FRAMES, moving_average
+
+    rng = np.random.default_rng(3)
+    n, p, half = 3000, 256, DRIFT_WINDOW_FRAMES // 2
+    phi = np.cumsum(rng.normal(0.0, 0.05, n))
+    phi *= drift_rad / np.std(phi)
+    echoes = rng.normal(size=p) + 1j * rng.normal(size=p)
+    z = 0.5 * echoes * np.exp(1j * phi)[:, None] + 3.0 * (rng.normal(size=(n, p)) + 1j * rng.normal(size=(n, p)))
+    m = moving_average(z, DRIFT_WINDOW_FRAMES)[half : n - half]
+    m = m - m.mean(axis=0)
+    u, sv = leading_singular_pairs(m, row_step=GRAM_ROW_STEP)
+    full_u, full_sv, _ = np.linalg.svd(m, full_matrices=False)
+    np.testing.assert_allclose(sv, full_sv[:2], rtol=5e-3)
+    assert sv[0] <= full_sv[0] * (1 + 1e-12)  # measured along a direction: never above the largest
+    if drift_rad > 0:
+        assert sv[0] > 2 * sv[1]
+        assert abs(np.vdot(u[:, 0], full_u[:, 0])) > 0.999
+    np.testing.assert_allclose(np.linalg.norm(u, axis=0), 1.0, rtol=1e-12)
