@@ -122,8 +122,8 @@ def moving_average(x: Array, window: int) -> Array:
     """Centred moving average along axis 0 with a window shrinking at the ends. A NumPy array
     is averaged in NumPy (the one-off host-side drift search: no compilation in a fresh
     process), anything else in JAX. Each window's sum is a difference of two running sums,
-    taken as slices (the windows at either end, then the full ones) rather than gathered by
-    index: the same values, in two-thirds of the time."""
+    taken as slices (the windows cut by either end, and the whole ones between) rather than
+    gathered by index: the same values, without a gather."""
     xp = np if isinstance(x, np.ndarray) else jnp
     n = x.shape[0]
     half = window // 2
@@ -137,7 +137,7 @@ def moving_average(x: Array, window: int) -> Array:
         [
             c[half + 1 : 2 * half + 1] - c[:1],  # the first `half` windows start at frame 0
             c[2 * half + 1 :] - c[: n - 2 * half],
-            c[n:] - c[n - 2 * half : n - half],  # the last `half` end at frame N
+            c[n:] - c[n - 2 * half : n - half],  # the last `half` end at the last frame
         ],
         axis=0,
     )
