@@ -583,7 +583,8 @@ class ExecutableCache:
             device = first_device(leaves)
             platform = jax.default_backend() if device is None else device.platform
             options |= compile_options(platform, quick, loop_emitters)
-            compiled = compile_lowered(jitted.lower(*leaves), options)
+            with JAX_CACHE_ENTRIES.held_off():
+                compiled = compile_lowered(jitted.lower(*leaves), options)
         except Exception:  # e.g. an argument jit accepts but lowering with it does not
             return jitted
         self.compiled += 1
@@ -610,6 +611,45 @@ class ExecutableCache:
 
     def bound(self):
         bound_folder(self.folder, "*.exe", self.MAX_BYTES)
+
+
+class JaxCacheEntries:
+    """Holds off JAX's own persistent-cache entries while executable cache compiles run
+    (`held_off`). Such a compile has a key of its own in JAX's cache, never read again
+    (`ExecutableCache._compile`): its entry would serialise and compress the executable a
+    second time, on a first run's way to its first dispatch, and fill the cache's folder. JAX's
+    threshold for writing an entry is set per process (`jax.config`), so while any thread
+    holds entries off, a plain `jax.jit` compile elsewhere in the process is not written
+    either: it is compiled again by a later process, nothing worse."""
+
+    OPTION = "jax_persistent_cache_min_compile_time_secs"
+
+    def __init__(self):
+        import threading
+
+        self.lock = threading.Lock()
+        self.holders = 0
+        self.threshold_s = None  # the threshold the first holder replaced
+
+    @contextlib.contextmanager
+    def held_off(self):
+        import jax
+
+        with self.lock:
+            if self.holders == 0:
+                self.threshold_s = getattr(jax.config, self.OPTION)
+                jax.config.update(self.OPTION, float("inf"))
+            self.holders += 1
+        try:
+            yield
+        finally:
+            with self.lock:
+                self.holders -= 1
+                if self.holders == 0:
+                    jax.config.update(self.OPTION, self.threshold_s)
+
+
+JAX_CACHE_ENTRIES = JaxCacheEntries()
 
 
 def trees_come_back(trees) -> bool:

@@ -620,3 +620,34 @@ def test_a_dispatcher_prepares_the_inversion_a_tile_of_a_long_sweep_runs(tmp_pat
         plain = TileDispatcher(plan, sub_px=16).dispatch(frames).gather()
     for k in plain:
         np.testing.assert_array_equal(prepared[k], plain[k], err_msg=k)
+
+
+def test_an_executable_cache_compile_leaves_no_entry_in_jaxs_own_cache(tmp_path, monkeypatch):
+    """An executable cache compile has a key of its own in JAX's persistent cache, never read
+    again (`ExecutableCache._compile`): its executable goes to the executable cache alone
+    (`runtime.JAX_CACHE_ENTRIES`), not serialised a second time into JAX's, while a plain
+    `jax.jit` program of the same process still gets JAX's entry."""
+    from pathlib import Path
+
+    import jax.numpy as jnp
+
+    from cohflash_jax import runtime
+
+    folder = Path(jax.config.jax_compilation_cache_dir)
+
+    def only_in_the_executable_cache(x):
+        return x * 3.0 + 1.0
+
+    def also_in_jaxs_own_cache(x):
+        return x * 5.0 - 1.0
+
+    monkeypatch.setattr(runtime.EXECUTABLES, "folder", tmp_path)
+    x = jnp.arange(7.0)
+    np.testing.assert_array_equal(runtime.async_filter_jit(only_in_the_executable_cache)(x), x * 3.0 + 1.0)
+    np.testing.assert_array_equal(jax.jit(also_in_jaxs_own_cache)(x), x * 5.0 - 1.0)
+    assert [p.name.split("-")[0] for p in tmp_path.glob("*.exe")] == ["only_in_the_executable_cache"]
+    jax_entries = [p.name for p in folder.glob("jit_*")]
+    assert any("also_in_jaxs_own_cache" in name for name in jax_entries), jax_entries
+    assert not any("only_in_the_executable_cache" in name for name in jax_entries), jax_entries
+    assert runtime.JAX_CACHE_ENTRIES.holders == 0  # JAX's threshold as it was
+    assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0
