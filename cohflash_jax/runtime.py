@@ -9,6 +9,7 @@ import ctypes
 import functools
 import os
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import NoReturn
@@ -625,8 +626,6 @@ class JaxCacheEntries:
     OPTION = "jax_persistent_cache_min_compile_time_secs"
 
     def __init__(self):
-        import threading
-
         self.lock = threading.Lock()
         self.holders = 0
         self.threshold_s = None  # the threshold the first holder replaced
@@ -637,15 +636,18 @@ class JaxCacheEntries:
 
         with self.lock:
             if self.holders == 0:
-                self.threshold_s = getattr(jax.config, self.OPTION)
-                jax.config.update(self.OPTION, float("inf"))
+                try:
+                    self.threshold_s = getattr(jax.config, self.OPTION)
+                    jax.config.update(self.OPTION, float("inf"))
+                except (AttributeError, KeyError, ValueError):  # another JAX: entries as before
+                    self.threshold_s = None
             self.holders += 1
         try:
             yield
         finally:
             with self.lock:
                 self.holders -= 1
-                if self.holders == 0:
+                if self.holders == 0 and self.threshold_s is not None:
                     jax.config.update(self.OPTION, self.threshold_s)
 
 
