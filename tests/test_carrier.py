@@ -47,6 +47,31 @@ def test_untracked_drift_is_never_a_valid_depth(turbulent):
     assert np.all(np.abs(out["depth_m"][valid] - 30.5) < 6 * out["sigma_m"][valid])
 
 
+@pytest.mark.parametrize("name", ["static", "drift"])
+def test_the_survey_leaves_out_pixels_with_a_non_finite_frame_after_the_ranked_ones(turbulent, name):
+    """Integer frames are ranked on their first frames (`drift.DRIFT_RANK_FRAMES`); floating
+    ones (a registered capture's) on all of them, so that a pixel with a NaN frame anywhere is
+    left out of the sample, not only one with a NaN among the first frames: a NaN at frame 2000
+    in 50 of the 144 pixels leaves 94 in the sample, and the verdict is the one without them."""
+    import warnings
+
+    from cohflash_jax.estimate.drift import DRIFT_RANK_FRAMES, choose_carrier_alignment
+
+    inst, frames = turbulent
+    x = np.asarray(frames[name], np.float32).reshape(4, 3000, -1)
+    assert DRIFT_RANK_FRAMES < 2000
+    x[:, 2000, 10:60] = np.nan
+    weights, bias = inst.hybrid.iq_matrix_dn(1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no NaN reaches the survey's arithmetic
+        alignment = choose_carrier_alignment("auto", x, weights, bias)
+        without = choose_carrier_alignment("auto", np.delete(x, np.s_[10:60], axis=2), weights, bias)
+    assert "in 94 sample pixels" in alignment.reason, alignment.reason
+    assert alignment.mode == without.mode == ("static" if name == "static" else "common")
+    if name == "drift":
+        np.testing.assert_allclose(alignment.phase_rad, without.phase_rad, rtol=0, atol=1e-12)
+
+
 def _meta(path):
     with h5py.File(path) as f:
         meta = dict(f.attrs)

@@ -135,9 +135,9 @@ def leading_singular_pairs(m: np.ndarray, count: int = 2, row_step: int = 1) -> 
 
 CARRIER_ALIGNMENTS = ("auto", "static", "tracked")
 # Pixels of the first tile the automatic choice looks at: the strongest mean terms (echoes),
-# ranked by their means over the first frames: a contiguous stretch (a stride over the frames
-# would alias some tones onto the mean), enough to rank echoes by strength, without reading
-# the whole tile
+# those of integer frames ranked by their means over the first frames: a contiguous stretch (a
+# stride over the frames would alias some tones onto the mean), enough to rank echoes by
+# strength, without reading the whole tile
 DRIFT_SAMPLE_PIXELS = 256
 DRIFT_RANK_FRAMES = 512
 
@@ -197,8 +197,11 @@ def choose_carrier_alignment(
     n = frames.shape[1]
     if n <= DRIFT_MIN_WINDOWS * DRIFT_WINDOW_FRAMES:
         return CarrierAlignment("static", f"auto: {n} frames are too few to look for a carrier drift")
-    # the strongest mean terms, from the frames' means (I/Q is linear in the frames)
-    means = frame_means(frames[:, :DRIFT_RANK_FRAMES]).reshape(4, 1, -1)  # (4, 1, P)
+    # the strongest mean terms, from the frames' means (I/Q is linear in the frames): integer
+    # frames over their first frames; floating ones over all, whose means also leave out a pixel
+    # with a non-finite value in any frame
+    ranked = frames[:, :DRIFT_RANK_FRAMES] if np.issubdtype(frames.dtype, np.integer) else frames
+    means = frame_means(ranked).reshape(4, 1, -1)  # (4, 1, P)
     # in NumPy: a one-off survey, with no programs to compile or load in a fresh process
     pick = lambda a, idx: None if a is None else np.asarray(a, np.float32)[:, idx]
     everywhere = slice(None)
