@@ -129,10 +129,10 @@ def moving_average(x: Array, window: int) -> Array:
     half = window // 2
     c = xp.cumsum(xp.concatenate([xp.zeros_like(x[:1]), x], axis=0), axis=0)
     idx = xp.arange(n)
-    count = (xp.minimum(idx + half + 1, n) - xp.maximum(idx - half, 0)).astype(x.real.dtype)
-    count = count.reshape((n,) + (1,) * (x.ndim - 1))
+    lo, hi = xp.maximum(idx - half, 0), xp.minimum(idx + half + 1, n)  # each window's frames
+    count = (hi - lo).astype(x.real.dtype).reshape((n,) + (1,) * (x.ndim - 1))
     if n <= 2 * half:  # every window shrinks: gathered
-        return (c[xp.minimum(idx + half + 1, n)] - c[xp.maximum(idx - half, 0)]) / count
+        return (c[hi] - c[lo]) / count
     sums = xp.concatenate(
         [
             c[half + 1 : 2 * half + 1] - c[:1],  # the first `half` windows start at frame 0
