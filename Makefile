@@ -8,7 +8,7 @@ STAMP := $(VENV)/.cohflash-installed
 
 .PHONY: demo test lint format bench bytecode clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py cohflash_jax/native_kernels.c
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e ".[test]"

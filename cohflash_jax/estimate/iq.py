@@ -27,17 +27,28 @@ def iq_from_frames(
     are folded into per-pixel weights and bias, so the frames are read once."""
     xp = namespace(frames, iq_weights, iq_bias, dark, gain)
     x = frames if xp.issubdtype(frames.dtype, xp.floating) else frames.astype(xp.float32)
-    w = xp.asarray(iq_weights).astype(x.dtype)
-    b = xp.asarray(iq_bias).astype(x.dtype)[:, None]
-    if gain is not None:
-        w = w[:, :, None] / gain.astype(x.dtype)[None]  # (2, 4, P)
-    if dark is not None:
-        d = dark.astype(x.dtype)
-        # dark folded into the bias, not subtracted per frame
-        b = b - (xp.einsum("ikp,kp->ip", w, d) if w.ndim == 3 else w @ d)
+    w, b = folded_weights(iq_weights, iq_bias, dark, gain, x.dtype)
     i = w[0, 0] * x[0] + w[0, 1] * x[1] + w[0, 2] * x[2] + w[0, 3] * x[3] + b[0]
     q = w[1, 0] * x[0] + w[1, 1] * x[1] + w[1, 2] * x[2] + w[1, 3] * x[3] + b[1]
     return i, q
+
+
+def folded_weights(iq_weights, iq_bias, dark=None, gain=None, dtype=None):
+    """The weights W (2, 4), or (2, 4, P) with per-pixel `gain`, and bias b (2, 1) or (2, P)
+    with per-pixel `dark`, that make [I, Q] = W·DN + b (`iq_from_frames`), in `dtype`
+    (default: the weights' own). NumPy in, NumPy out; JAX in, JAX out."""
+    xp = namespace(iq_weights, iq_bias, dark, gain)
+    w = xp.asarray(iq_weights)
+    dtype = w.dtype if dtype is None else dtype
+    w = w.astype(dtype)
+    b = xp.asarray(iq_bias).astype(dtype)[:, None]
+    if gain is not None:
+        w = w[:, :, None] / gain.astype(dtype)[None]  # (2, 4, P)
+    if dark is not None:
+        d = dark.astype(dtype)
+        # dark folded into the bias, not subtracted per frame
+        b = b - (xp.einsum("ikp,kp->ip", w, d) if w.ndim == 3 else w @ d)
+    return w, b
 
 
 def _rotate(i, q, phase):

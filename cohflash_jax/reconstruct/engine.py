@@ -20,12 +20,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import early_read, tiling
+from .. import early_read, native, tiling
 from ..capture import Capture
+from ..estimate.iq import folded_weights
 from ..runtime import EXECUTABLES, device_value, place_on_devices, stream_devices
 from ..tiling import BUFFER_ALIGNMENT_BYTES
 from .plan import TilePlan, program_plan
-from .programs import inversion_plan, prepare_stages, process_stages
+from .programs import in_two_halves, inversion_half, inversion_plan, prepare_stages, process_stages
 
 
 def sub_tile_pixels(num_pixels: int, num_frames: int, platform: str | None = None) -> int:
@@ -86,16 +87,17 @@ class TileDispatcher:
         plan = program_plan(plan)
         self.placed = place_on_devices((plan.iq, inversion_plan(plan), carrier), self.devices)
         self.no_status = {}  # (pixels, device) → placed zeros: "no upstream status"
+        self.all_finite = {}  # (pixels, device) → placed `True`s: integer frames are finite
         self.prepared = set()  # the kinds of tile `prepare` was asked for
+        # the I/Q stage on the host, for the native kernel (`host_iq`): weights, bias, saturation
+        stage = plan.iq
+        self.host_stage = (np.asarray(stage.weights, np.float32), np.asarray(stage.bias, np.float32), stage)
 
     def zero_status(self, pixels: int, device):
         """A sub-tile's upstream status where there is none (all 0: nothing found upstream),
         placed once: the inversion programs then take a status array whether or not a capture
         has one (a registered capture's resampling has), and the two share their programs."""
-        if (pixels, device) not in self.no_status:
-            zeros = np.zeros(pixels, np.int8)
-            self.no_status[pixels, device] = jax.device_put(zeros, device)
-        return self.no_status[pixels, device]
+        return self.placed_constant(self.no_status, 0, np.int8, pixels, device)
 
     def cut(self, frames) -> tuple[int, int]:
         """(pixels, pixels a sub-tile) of a tile (4, N, P), its `TilePieces` or its
@@ -152,11 +154,56 @@ class TileDispatcher:
         pool.shutdown(wait=False)  # its thread ends with the preparation
         return future
 
+    def placed_constant(self, cache: dict, value, dtype, pixels: int, device):
+        """`value` over a sub-tile's pixels, placed on `device` once (`cache`: (pixels, device) → array)."""
+        if (pixels, device) not in cache:
+            cache[pixels, device] = jax.device_put(np.full(pixels, value, dtype), device)
+        return cache[pixels, device]
+
+    def host_iq(self, frames) -> bool:
+        """Whether a tile's I/Q halves run in the native kernel on the host (`native.iq_half`)
+        instead of XLA's two I/Q programs: on the CPU, for a tile read as its sub-tiles
+        (`TilePieces`) of 16-bit frames, whose programs split in two halves
+        (`programs.in_two_halves`), in float32, without a known carrier drift to remove."""
+        if not isinstance(frames, TilePieces) or not native.available() or jax.default_backend() != "cpu":
+            return False
+        stage, (_, _, carrier) = self.host_stage[2], self.placed[0]
+        piece = frames.pieces[0]
+        return (
+            carrier is None
+            and piece.dtype == np.uint16
+            and stage.real_dtype == jnp.float32
+            and in_two_halves(stage, piece)
+        )
+
+    def invert_host_iq(self, frames: TilePieces, dark, data_status, gain, k: int):
+        """Sub-tile k's I/Q half by the native kernel on this thread (the interpreter lock
+        released), its outputs placed on the sub-tile's device (aliased, not copied), and its
+        inversion dispatched (`programs.inversion_half`)."""
+        _, sub = self.cut(frames)
+        device, (_, plan, _) = self.stream(k)
+        columns = slice(k * sub, (k + 1) * sub)
+        weights, bias, stage = self.host_stage
+        pixel_map = lambda m: None if m is None else np.asarray(m[..., columns], np.float32)
+        weights, bias = folded_weights(weights, bias, pixel_map(dark), pixel_map(gain), np.float32)
+        half = native.iq_half(frames.pieces[k], weights, bias, stage.saturation_dn)
+        put = lambda x: jax.device_put(x, device)
+        finite = self.placed_constant(self.all_finite, True, bool, sub, device)
+        flags = (put(half.dead.view(bool)), put(half.saturated.view(bool)), finite)
+        iq = (put(half.r), put(half.noise_var), put(half.total_var), flags)
+        status = self.zero_status(sub, device) if data_status is None else put(np.asarray(data_status[columns]))
+        return inversion_half(plan, iq, status)
+
     def dispatch(self, frames, dark=None, data_status=None, gain=None) -> PendingTile:
         """Dispatch a tile (4, N, P), or read as its sub-tiles (`TilePieces` of `sub_px`), with
-        its per-pixel maps (4, P) and upstream status (P,)."""
+        its per-pixel maps (4, P) and upstream status (P,). Where the native kernel applies
+        (`host_iq`) each sub-tile's I/Q half runs on this thread and only its inversion is
+        dispatched."""
         p, sub = self.cut(frames)
         several = len(self.devices) > 1
+        if self.host_iq(frames):
+            parts = [self.invert_host_iq(frames, dark, data_status, gain, k) for k in range(len(frames.pieces))]
+            return PendingTile(parts, p)
 
         def piece(arr, k, device):
             if arr is None:

@@ -46,10 +46,9 @@ def process_stages(
     a dispatcher splits it once, not once a sub-tile (a 10 Hz map has ten). `run(program,
     *arguments)` calls each program (default: runs it; `prepare_stages` passes another)."""
     run = run or (lambda program, *arguments: program(*arguments))
-    if frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES and not stage.tracking:
-        (c, s, noise_var, total_var), flags = run(axis_and_checks, stage, frames, dark, gain, carrier_phase_rad)
-        r = run(rotated_from_frames, stage, frames, dark, c, s, gain, carrier_phase_rad)
-        return run(invert_sequence, plan, r, noise_var, total_var, flags, data_status)
+    if in_two_halves(stage, frames):
+        iq = iq_half(stage, frames, dark, gain, carrier_phase_rad, run=run)
+        return inversion_half(plan, iq, data_status, run=run)
     if frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES:
         i, q, flags = run(iq_and_checks, stage, frames, dark, gain, carrier_phase_rad)
         c, s, noise_var, total_var = run(carrier_axis_program, i, q)
@@ -57,6 +56,29 @@ def process_stages(
         return run(invert_sequence, plan, r, noise_var, total_var, flags, data_status)
     i, q, (c, s, noise_var, total_var), flags = run(iq_and_carrier_axis, stage, frames, dark, gain, carrier_phase_rad)
     return run(rotate_and_invert, plan, i, q, c, s, noise_var, total_var, flags, data_status)
+
+
+def in_two_halves(stage: IQStage, frames) -> bool:
+    """Whether a sub-tile's programs split into an I/Q half that reads its frames (`iq_half`)
+    and an inversion half that does not (`inversion_half`): a long sweep without a tracked
+    carrier. The native kernel computes the first half on the host where it can
+    (`engine.TileDispatcher.host_iq`)."""
+    return frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES and not stage.tracking
+
+
+def iq_half(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=None, *, run=None):
+    """The data checks, the carrier axis and the rotated sequence of a sub-tile (`in_two_halves`)
+    → the inversion's inputs (r, noise variance, total variance, flags)."""
+    run = run or (lambda program, *arguments: program(*arguments))
+    (c, s, noise_var, total_var), flags = run(axis_and_checks, stage, frames, dark, gain, carrier_phase_rad)
+    r = run(rotated_from_frames, stage, frames, dark, c, s, gain, carrier_phase_rad)
+    return r, noise_var, total_var, flags
+
+
+def inversion_half(plan: TilePlan, iq: tuple, data_status=None, *, run=None):
+    """The inversion of a sub-tile from its I/Q half (`iq_half`, or the native kernel's)."""
+    run = run or (lambda program, *arguments: program(*arguments))
+    return run(invert_sequence, plan, *iq, data_status)
 
 
 def prepare_stages(stage: IQStage, plan: TilePlan, frames, dark, data_status=None, gain=None, carrier_phase_rad=None):

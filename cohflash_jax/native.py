@@ -1,0 +1,139 @@
+"""The package's native kernel: a long sweep's I/Q half (data checks, carrier axis, rotated
+sequence) in one pass over a sub-tile's frames, in C (`native_kernels.c`), loaded with ctypes.
+
+XLA's CPU code for the same arithmetic (`reconstruct.programs.axis_and_checks` and
+`rotated_from_frames`) materialises I and Q and sums them in separate passes: ~60 MB of
+memory traffic for 7.7 MB of frames, most of a full capture's I/Q time (docs/performance.md).
+The kernel reads the frames twice. It is built with the package where a C compiler is found
+(`setup.py`, optional); without it, or with `COHFLASH_NATIVE=0`, the XLA programs run, and
+the two agree to float32 rounding (tests/test_native.py).
+
+Its moments are summed in float32 over 64 frames and in float64 across them (XLA's in float32),
+and centred, so the results differ from the XLA programs' in the last bits of float32."""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import importlib.machinery
+import os
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+LIBRARY_STEM = "native_kernels"  # setup.py's extension: cohflash_jax/native_kernels<suffix>
+ALIGNMENT_BYTES = 64  # JAX aliases (does not copy) host buffers aligned so on the CPU
+
+
+class IQHalf(NamedTuple):
+    """A sub-tile's I/Q half: the rotated sequence r (N, P) float32, cos φ and sin φ (P,)
+    float32, the orthogonal and total variances (P,) float64, the dead and saturated flags (P,)."""
+
+    r: np.ndarray
+    cos_phase: np.ndarray
+    sin_phase: np.ndarray
+    noise_var: np.ndarray
+    total_var: np.ndarray
+    dead: np.ndarray
+    saturated: np.ndarray
+
+
+KERNEL_ERRORS = {1: "out of memory", 2: "empty frames"}
+
+
+def library_path() -> Path | None:
+    """The built kernel library beside this module, or None where it was not built."""
+    here = Path(__file__).parent
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+        path = here / (LIBRARY_STEM + suffix)
+        if path.exists():
+            return path
+    return None
+
+
+@functools.cache
+def library():
+    """The loaded library (ctypes), or None where it is not built or `COHFLASH_NATIVE=0`."""
+    if os.environ.get("COHFLASH_NATIVE", "1") == "0":
+        return None
+    path = library_path()
+    if path is None:
+        return None
+    try:
+        lib = ctypes.CDLL(str(path))
+    except OSError:
+        return None
+    pointer = ctypes.c_void_p
+    for name in ("cohflash_iq_half_u16", "cohflash_iq_half_u16_avx2"):
+        if hasattr(lib, name):
+            kernel = getattr(lib, name)
+            kernel.restype = ctypes.c_int
+            kernel.argtypes = [pointer, ctypes.c_int64, ctypes.c_int64, pointer, ctypes.c_int64, pointer]
+            kernel.argtypes += [ctypes.c_double] + [pointer] * 7
+    return lib
+
+
+def available() -> bool:
+    """Whether the kernel can run here."""
+    return library() is not None
+
+
+@functools.cache
+def kernel():
+    """The kernel for this CPU: the AVX2 build where the CPU has AVX2 and FMA and XLA is not
+    held below AVX2 (`--xla_cpu_max_isa`, so that both run on the same ISA), else the baseline."""
+    from .runtime import cpu_model_and_flags
+
+    lib = library()
+    flags = cpu_model_and_flags()[1]
+    avx2 = lib.cohflash_has_x86_kernels() and {"avx2", "fma"} <= set(flags)
+    for flag in os.environ.get("XLA_FLAGS", "").split():
+        if flag.startswith("--xla_cpu_max_isa="):
+            avx2 = avx2 and flag.split("=", 1)[1].upper().startswith(("AVX2", "AVX512", "AMX"))
+    return lib.cohflash_iq_half_u16_avx2 if avx2 else lib.cohflash_iq_half_u16
+
+
+def aligned_empty(shape: tuple, dtype) -> np.ndarray:
+    """An uninitialised C-contiguous array at an `ALIGNMENT_BYTES`-aligned address."""
+    dtype = np.dtype(dtype)
+    size = int(np.prod(shape)) * dtype.itemsize
+    raw = np.empty(size + ALIGNMENT_BYTES, np.uint8)
+    start = -raw.ctypes.data % ALIGNMENT_BYTES
+    return raw[start : start + size].view(dtype).reshape(shape)
+
+
+def iq_half(frames: np.ndarray, weights: np.ndarray, bias: np.ndarray, saturation_dn) -> IQHalf:
+    """A sub-tile's I/Q half from its frames (4, N, P) uint16 (C order): `weights` (2, 4), or
+    (2, 4, P) per pixel, and `bias` (2, P) float32 make I and Q = W·x + b; `saturation_dn`
+    (None: none) flags a pixel any of whose values reaches it. Runs with the interpreter lock
+    released (ctypes)."""
+    if frames.dtype != np.uint16 or frames.ndim != 3 or frames.shape[0] != 4 or not frames.flags.c_contiguous:
+        raise ValueError(f"frames must be C-contiguous uint16 (4, N, P), not {frames.dtype} {frames.shape}")
+    _, n, p = frames.shape
+    weights = np.ascontiguousarray(weights, np.float32)
+    bias = np.ascontiguousarray(np.broadcast_to(bias, (2, p)), np.float32)
+    if weights.shape not in ((2, 4), (2, 4, p)):
+        raise ValueError(f"weights must be (2, 4) or (2, 4, {p}), not {weights.shape}")
+    out = IQHalf(
+        aligned_empty((n, p), np.float32),
+        aligned_empty((p,), np.float32),
+        aligned_empty((p,), np.float32),
+        aligned_empty((p,), np.float64),
+        aligned_empty((p,), np.float64),
+        np.empty(p, np.uint8),
+        np.empty(p, np.uint8),
+    )
+    status = kernel()(
+        frames.ctypes.data,
+        n,
+        p,
+        weights.ctypes.data,
+        int(weights.ndim == 3),
+        bias.ctypes.data,
+        -1.0 if saturation_dn is None else float(saturation_dn),
+        *(a.ctypes.data for a in out),
+    )
+    if status != 0:
+        raise RuntimeError(f"the native I/Q kernel failed: {KERNEL_ERRORS.get(status, status)}")
+    return out
