@@ -38,6 +38,7 @@ import time
 from pathlib import Path
 from typing import NamedTuple
 
+from cohflash_jax.native import description as native_description
 from cohflash_jax.process import allocator_description, compile_package_bytecode
 from cohflash_jax.runtime import cpu_description
 
@@ -208,6 +209,7 @@ def run(args, folder: Path):
     )
     print(f"JAX device: {jax.devices()[0].device_kind} ({jax.default_backend()})")
     print(allocator_description())
+    print(native_description())
     print(bytecode)
     print(f"capture {capture}; {args.rounds} interleaved rounds, medians; whole processes")
     print(f"{'what':56s} {'seconds':>8s} {'× floor':>8s} {'NumPy ÷ it':>10s}")

@@ -14,7 +14,8 @@ compilation cache (warm: a run before the rounds fills it; `--cold` empties it e
    pass over the file, and the compiled programs one by one on one sub-tile (the data checks
    with the carrier axis, the rotated sequence, each computing I/Q from the frames; the coarse
    FFT stage; the whole inversion: ML = inversion − coarse), scaled to the capture, as one
-   device runs them, and the depth file write.
+   device runs them, the native I/Q kernel that replaces the first two where it is built
+   (`cohflash_jax.native`), and the depth file write.
 
 Prints medians over rounds with the CPU model, ISA and JAX versions. Printed, never asserted.
 
@@ -34,6 +35,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from cohflash_jax.native import description as native_description
 from cohflash_jax.process import allocator_description, allocator_environment, compile_package_bytecode
 from cohflash_jax.runtime import cpu_description
 
@@ -128,6 +130,15 @@ stages = {
 }
 inversion = timed(programs.invert_sequence, programs.inversion_plan(plan), r, noise_var, total_var, flags)
 stages["estimator (inversion − coarse)"] = max(inversion - stages["coarse stage (FFT, detection)"], 0.0)
+from cohflash_jax import native
+if native.available() and pieces and first.dtype == np.uint16:  # what runs instead of the two I/Q programs
+    from cohflash_jax.estimate.iq import folded_weights
+    no_dark = np.zeros((4, sub), np.float32)
+    weights, bias = folded_weights(np.asarray(plan.iq.weights), np.asarray(plan.iq.bias), no_dark)
+    piece = np.array(first)
+    stages["native I/Q kernel (replaces both)"] = timed(
+        lambda: native.iq_half(piece, weights, bias, plan.iq.saturation_dn).r, repeats=9
+    )
 print(json.dumps({"first run": runs[0], "second run": runs[1], "read pass": read, "write depth file": write,
                   **stages}))
 """
@@ -156,6 +167,7 @@ def main():
 
     print(f"{cpu_description()}; JAX {jax.__version__}, jaxlib {jaxlib.__version__}; capture {args.capture}")
     print(allocator_description())
+    print(native_description())
     print(compile_package_bytecode())  # the package as an install leaves it, before any timing
     with tempfile.TemporaryDirectory(prefix="cohflash-bench-stages-") as tmp:
         tmp = Path(tmp)

@@ -94,6 +94,15 @@ def kernel():
     return lib.cohflash_iq_half_u16_avx2 if avx2 else lib.cohflash_iq_half_u16
 
 
+def description() -> str:
+    """The kernel in words, for benchmarks and depth files: built or not, and for which ISA."""
+    if library() is None:
+        why = "off (COHFLASH_NATIVE=0)" if os.environ.get("COHFLASH_NATIVE", "1") == "0" else "not built"
+        return f"native I/Q kernel {why}: XLA's I/Q programs run"
+    isa = "AVX2" if kernel() is library().cohflash_iq_half_u16_avx2 else "baseline ISA"
+    return f"native I/Q kernel ({isa})"
+
+
 def aligned_empty(shape: tuple, dtype) -> np.ndarray:
     """An uninitialised C-contiguous array at an `ALIGNMENT_BYTES`-aligned address."""
     dtype = np.dtype(dtype)

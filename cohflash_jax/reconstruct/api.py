@@ -14,6 +14,7 @@ import time
 import jax
 import numpy as np
 
+from .. import native
 from ..calibration_file import Calibration, CaptureSetup, PixelMaps
 from ..capture import Capture, CaptureError
 from ..estimate.drift import CarrierAlignment, choose_carrier_alignment
@@ -365,6 +366,7 @@ def reconstruct_capture(
         options,
         alignment,
         seconds=time.perf_counter() - t0,
+        iq_path=native.description() if dispatcher.host_iq_tiles else "XLA's I/Q programs",
         registered=registration_maps is not None,
         crlb_at_unit_snr_m=crlb_at_unit_snr_m(instrument.sweep.frequencies_hz, plan.geometry.dominant_order),
     )

@@ -88,6 +88,7 @@ class TileDispatcher:
         self.placed = place_on_devices((plan.iq, inversion_plan(plan), carrier), self.devices)
         self.no_status = {}  # (pixels, device) → placed zeros: "no upstream status"
         self.all_finite = {}  # (pixels, device) → placed `True`s: integer frames are finite
+        self.host_iq_tiles = 0  # tiles whose I/Q halves the native kernel computed (`host_iq`)
         self.prepared = set()  # the kinds of tile `prepare` was asked for
         # the I/Q stage on the host, for the native kernel (`host_iq`): weights, bias, saturation
         stage = plan.iq
@@ -202,6 +203,7 @@ class TileDispatcher:
         p, sub = self.cut(frames)
         several = len(self.devices) > 1
         if self.host_iq(frames):
+            self.host_iq_tiles += 1
             parts = [self.invert_host_iq(frames, dark, data_status, gain, k) for k in range(len(frames.pieces))]
             return PendingTile(parts, p)
 
