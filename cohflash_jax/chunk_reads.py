@@ -17,6 +17,7 @@ import os
 import h5py
 import numpy as np
 
+from . import native
 from .early_read import file_identity
 
 # struct iovec {void *iov_base; size_t iov_len;}, as `preadv` takes an array of them
@@ -118,10 +119,12 @@ class DirectChunkReader:
                     yield c, g, n0, k, b, band, offsets[c][g][b], k * rc * w * self.itemsize
 
     @staticmethod
-    def check_read(got: int, want: int, chunk: tuple) -> None:
-        """A chunk read short (a truncated file) or failed, as an `OSError` naming the chunk."""
+    def check_read(got: int, want: int, chunk: tuple, errno: int | None = None) -> None:
+        """A chunk read short (a truncated file) or failed, as an `OSError` naming the chunk
+        (`errno`: the failed read's, default ctypes' last)."""
         if got != want:
-            error = f" ({os.strerror(ctypes.get_errno())})" if got < 0 else " (a truncated file?)"
+            errno = ctypes.get_errno() if errno is None else errno
+            error = f" ({os.strerror(errno)})" if got < 0 else " (a truncated file?)"
             raise OSError(f"chunk {chunk}: {got} of {want} bytes read{error}")
 
     def read_rows_into(self, out: np.ndarray, rows: slice) -> None:
@@ -179,9 +182,31 @@ class DirectChunkReader:
         start = [t.ctypes.data for t in tables]  # each chunk's IOVECs: (c, g) rows of its band's table
         runs = [t.shape[-1] // fc for t in tables]
         groups = tables[0].shape[1]
+        if native.reads_chunks():  # the whole tile in one call (`native.read_chunks`)
+            self.read_chunks_natively(start, runs, groups, rows)
+            return
         for c, g, n0, k, b, band, offset, want in self.chunks_of(rows):
             address = start[b] + (c * groups + g) * fc * runs[b] * IOVEC.itemsize
             self.check_read(PREADV(self.fd, address, k * runs[b], offset), want, (c, n0, band, 0))
+
+    def read_chunks_natively(self, start: list, runs: list, groups: int, rows: slice) -> None:
+        """`read_rows_into_pieces`'s reads, in `chunks_of`'s order, as arrays for
+        `native.read_chunks`: one call for the tile, not one a chunk from the interpreter."""
+        _, n, _, w = self.shape
+        _, fc, rc, _ = self.chunks
+        r0, r1, _ = rows.indices(self.shape[2])
+        offsets = self.offsets[:, :, r0 // rc : -(-r1 // rc)]  # (4, frame chunks, bands)
+        held = np.minimum(fc, n - fc * np.arange(groups))[None, :, None]  # frames of data a chunk holds
+        runs = np.asarray(runs, np.uint64)[None, None, :]
+        first = (np.arange(4)[:, None, None] * groups + np.arange(groups)[None, :, None]).astype(np.uint64)
+        addresses = np.asarray(start, np.uint64)[None, None, :] + first * np.uint64(fc * IOVEC.itemsize) * runs
+        counts = held.astype(np.uint64) * runs
+        wants = np.broadcast_to(held * rc * w * self.itemsize, offsets.shape)
+        short = native.read_chunks(self.fd, offsets.ravel(), wants.ravel(), addresses.ravel(), counts.ravel())
+        if short is not None:
+            index, got, errno = short
+            c, g, b = (int(i) for i in np.unravel_index(index, offsets.shape))
+            self.check_read(got, int(wants[c, g, b]), (c, g * fc, r0 + b * rc, 0), errno)
 
     def close(self):
         if self.fd is not None:

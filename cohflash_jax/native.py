@@ -1,5 +1,6 @@
-"""The package's native kernel: a long sweep's I/Q half (data checks, carrier axis, rotated
-sequence) in one pass over a sub-tile's frames, in C (`native_kernels.c`), loaded with ctypes.
+"""The package's native kernels, in C (`native_kernels.c`), loaded with ctypes: a long sweep's
+I/Q half (data checks, carrier axis, rotated sequence) in one pass over a sub-tile's frames
+(`iq_half`), and a tile's chunks read from the file in one call (`read_chunks`).
 
 XLA's CPU code for the same arithmetic (`reconstruct.programs.axis_and_checks` and
 `rotated_from_frames`) materialises I and Q and sums them in separate passes: ~60 MB of
@@ -61,10 +62,13 @@ def library():
     if path is None:
         return None
     try:
-        lib = ctypes.CDLL(str(path))
+        lib = ctypes.CDLL(str(path), use_errno=True)
     except OSError:
         return None
     pointer = ctypes.c_void_p
+    if hasattr(lib, "cohflash_read_chunks"):
+        lib.cohflash_read_chunks.restype = ctypes.c_int64
+        lib.cohflash_read_chunks.argtypes = [ctypes.c_int, ctypes.c_int64] + [pointer] * 5
     for name in ("cohflash_iq_half_u16", "cohflash_iq_half_u16_avx2"):
         if hasattr(lib, name):
             kernel = getattr(lib, name)
@@ -92,6 +96,32 @@ def kernel():
         if flag.startswith("--xla_cpu_max_isa="):
             avx2 = avx2 and flag.split("=", 1)[1].upper().startswith(("AVX2", "AVX512", "AMX"))
     return lib.cohflash_iq_half_u16_avx2 if avx2 else lib.cohflash_iq_half_u16
+
+
+def reads_chunks() -> bool:
+    """Whether `read_chunks` can run here (the library is built, on a system with `preadv`)."""
+    return library() is not None and hasattr(library(), "cohflash_read_chunks")
+
+
+def read_chunks(fd: int, offsets: np.ndarray, wants: np.ndarray, iovec_addresses: np.ndarray, iovec_counts: np.ndarray):
+    """Chunks read straight into place, chunk i by one `preadv` of `iovec_counts[i]` buffers
+    described by the `struct iovec`s at `iovec_addresses[i]`, at file offset `offsets[i]`, all
+    in one call with the interpreter lock released. Returns None where every chunk gave its
+    `wants[i]` bytes, else (the index of the first that did not, what `preadv` returned, errno)."""
+    offsets, wants = np.ascontiguousarray(offsets, np.int64), np.ascontiguousarray(wants, np.int64)
+    addresses = np.ascontiguousarray(iovec_addresses, np.uint64)
+    counts = np.ascontiguousarray(iovec_counts, np.int32)
+    got = ctypes.c_int64(0)
+    first_short = library().cohflash_read_chunks(
+        fd,
+        offsets.size,
+        offsets.ctypes.data,
+        wants.ctypes.data,
+        addresses.ctypes.data,
+        counts.ctypes.data,
+        ctypes.byref(got),
+    )
+    return None if first_short < 0 else (int(first_short), got.value, ctypes.get_errno())
 
 
 def description() -> str:

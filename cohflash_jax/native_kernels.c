@@ -177,3 +177,25 @@ int cohflash_has_x86_kernels(void) { return 1; }
 int cohflash_has_x86_kernels(void) { return 0; }
 #endif
 DEFINE_KERNEL(cohflash_iq_half_u16, )
+
+/* Chunks of a capture file read straight into place, each with one preadv scattering it over
+   `iovec_counts[i]` buffers from the struct iovec at `iovec_addresses[i]` (as
+   cohflash_jax/chunk_reads.py lays them out): a whole tile in one call, without the
+   interpreter between the reads (nor its lock taken back after each). Returns
+   -1 where every chunk was read whole, else the index of the first that was not, its byte count
+   in *got (negative: failed, errno kept). */
+#ifdef HAVE_PREADV
+int64_t cohflash_read_chunks(int fd, int64_t count, const int64_t *offsets, const int64_t *wants,
+                             const uint64_t *iovec_addresses, const int32_t *iovec_counts, int64_t *got)
+{
+    for (int64_t i = 0; i < count; i++) {
+        const struct iovec *iovecs = (const struct iovec *)(uintptr_t)iovec_addresses[i];
+        const ssize_t read = preadv(fd, iovecs, iovec_counts[i], (off_t)offsets[i]);
+        if (read != wants[i]) {
+            *got = read;
+            return i;
+        }
+    }
+    return -1;
+}
+#endif
