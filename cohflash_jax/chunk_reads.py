@@ -200,7 +200,7 @@ class DirectChunkReader:
         runs = np.asarray(runs, np.uint64)[None, None, :]
         first = (np.arange(4)[:, None, None] * groups + np.arange(groups)[None, :, None]).astype(np.uint64)
         addresses = np.asarray(start, np.uint64)[None, None, :] + first * np.uint64(fc * IOVEC.itemsize) * runs
-        counts = held.astype(np.uint64) * runs
+        counts = np.broadcast_to(held.astype(np.uint64) * runs, offsets.shape)
         wants = np.broadcast_to(held * rc * w * self.itemsize, offsets.shape)
         short = native.read_chunks(self.fd, offsets.ravel(), wants.ravel(), addresses.ravel(), counts.ravel())
         if short is not None:

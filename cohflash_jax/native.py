@@ -111,6 +111,11 @@ def read_chunks(fd: int, offsets: np.ndarray, wants: np.ndarray, iovec_addresses
     offsets, wants = np.ascontiguousarray(offsets, np.int64), np.ascontiguousarray(wants, np.int64)
     addresses = np.ascontiguousarray(iovec_addresses, np.uint64)
     counts = np.ascontiguousarray(iovec_counts, np.int32)
+    if not offsets.size == wants.size == addresses.size == counts.size:
+        raise ValueError(
+            f"one offset, length, scatter table and count a chunk: {offsets.size}, {wants.size}, "
+            f"{addresses.size}, {counts.size}"
+        )
     got = ctypes.c_int64(0)
     first_short = library().cohflash_read_chunks(
         fd,

@@ -16,6 +16,11 @@
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
+#if defined(__unix__) || defined(__APPLE__)
+#include <sys/types.h>
+#include <sys/uio.h>
+#define HAVE_PREADV 1
+#endif
 
 #define BLOCK_FRAMES 64 /* float32 partial sums over this many frames, then float64 */
 #define UNROLL 2        /* frames a pixel's accumulators stay in registers for */

@@ -155,13 +155,21 @@ def test_block_reader_reads_over_a_tile_only_once_it_is_released(tmp_path):
         ((1, 3, 5, 7), 10, 2),  # a piece across two chunk bands; the last tile (rows 20:22) through HDF5
     ],
 )
-def test_tiles_read_straight_into_their_sub_tiles_equal_hdf5_reads(tmp_path, chunks, tile_rows, rows_per_piece):
+@pytest.mark.parametrize("native_reads", [True, False])
+def test_tiles_read_straight_into_their_sub_tiles_equal_hdf5_reads(
+    tmp_path, monkeypatch, chunks, tile_rows, rows_per_piece, native_reads
+):
     """A tile read as its sub-tiles (`PieceReader`: each chunk scattered by one `preadv` to the
-    pieces its rows belong to) holds HDF5's frames, piece by piece, in aligned C-contiguous
+    pieces its rows belong to; the tile's reads in one native call, `native.read_chunks`, or
+    a call a chunk where it is not built) holds HDF5's frames, piece by piece, in aligned C-contiguous
     pieces (a CPU device array aliases them); the short last tile is padded with zeros; a tile
     still in use keeps its buffer, the next tile going into the other."""
+    from cohflash_jax import native
     from cohflash_jax.reconstruct.engine import BUFFER_ALIGNMENT_BYTES, PieceReader
 
+    if native_reads and not native.reads_chunks():
+        pytest.skip("the native kernel was not built (no C compiler)")
+    monkeypatch.setattr(native, "reads_chunks", lambda: native_reads)
     frames = np.random.default_rng(8).integers(0, 2**16, (4, 10, 22, 7), dtype=np.uint16)
     with Capture(_chunked(tmp_path / "c.h5", frames, chunks=chunks)) as cap:
         reader = PieceReader(cap, PieceLayout(cap.shape, cap.frames.dtype, tile_rows, rows_per_piece))
@@ -236,7 +244,13 @@ def test_a_tile_source_states_its_tiles_before_reading_them(tmp_path):
     assert stated == read and read[0][2] == np.float32 and read[2] == (30, (), np.int8)
 
 
-def test_a_capture_truncated_after_it_was_opened_fails_naming_the_rows(tmp_path):
+@pytest.mark.parametrize("native_reads", [True, False])
+def test_a_capture_truncated_after_it_was_opened_fails_naming_the_rows(tmp_path, monkeypatch, native_reads):
+    from cohflash_jax import native
+
+    if native_reads and not native.reads_chunks():
+        pytest.skip("the native kernel was not built (no C compiler)")
+    monkeypatch.setattr(native, "reads_chunks", lambda: native_reads)
     frames = np.random.default_rng(7).integers(0, 2**16, (4, 10, 16, 7), dtype=np.uint16)
     path = _chunked(tmp_path / "c.h5", frames, chunks=(1, 4, 8, 7))
     with Capture(path) as cap:
@@ -251,7 +265,7 @@ def test_a_capture_truncated_after_it_was_opened_fails_naming_the_rows(tmp_path)
         # read straight into sub-tiles: the same error
         reader = PieceReader(cap, PieceLayout(cap.shape, cap.frames.dtype, 8, 2))
         reader.read(0)
-        with pytest.raises(CaptureError, match=r"rows 8:16 could not be read .*bytes read"):
+        with pytest.raises(CaptureError, match=r"rows 8:16 could not be read \(chunk \(\d, 8, 8, 0\): .*bytes read"):
             reader.read(8)
 
 
