@@ -147,11 +147,13 @@ def aligned_empty(shape: tuple, dtype) -> np.ndarray:
     return raw[start : start + size].view(dtype).reshape(shape)
 
 
-def iq_half(frames: np.ndarray, weights: np.ndarray, bias: np.ndarray, saturation_dn) -> IQHalf:
+def iq_half(
+    frames: np.ndarray, weights: np.ndarray, bias: np.ndarray, saturation_dn, out: np.ndarray | None = None
+) -> IQHalf:
     """A sub-tile's I/Q half from its frames (4, N, P) uint16 (C order): `weights` (2, 4), or
     (2, 4, P) per pixel, and `bias` (2, P) float32 make I and Q = W·x + b; `saturation_dn`
-    (None: none) flags a pixel any of whose values reaches it. Runs with the interpreter lock
-    released (ctypes)."""
+    (None: none) flags a pixel any of whose values reaches it; `out`: an aligned (N, P) float32
+    buffer for r (default: a new one). Runs with the interpreter lock released (ctypes)."""
     if frames.dtype != np.uint16 or frames.ndim != 3 or frames.shape[0] != 4 or not frames.flags.c_contiguous:
         raise ValueError(f"frames must be C-contiguous uint16 (4, N, P), not {frames.dtype} {frames.shape}")
     _, n, p = frames.shape
@@ -159,8 +161,10 @@ def iq_half(frames: np.ndarray, weights: np.ndarray, bias: np.ndarray, saturatio
     bias = np.ascontiguousarray(np.broadcast_to(bias, (2, p)), np.float32)
     if weights.shape not in ((2, 4), (2, 4, p)):
         raise ValueError(f"weights must be (2, 4) or (2, 4, {p}), not {weights.shape}")
+    if out is not None and (out.shape != (n, p) or out.dtype != np.float32 or not out.flags.c_contiguous):
+        raise ValueError(f"out must be a C-contiguous float32 ({n}, {p}) array, not {out.dtype} {out.shape}")
     out = IQHalf(
-        aligned_empty((n, p), np.float32),
+        aligned_empty((n, p), np.float32) if out is None else out,
         aligned_empty((p,), np.float32),
         aligned_empty((p,), np.float32),
         aligned_empty((p,), np.float64),

@@ -4,6 +4,8 @@ rounding, and the same reconstruction, on frames from the independent writer."""
 
 from __future__ import annotations
 
+import collections
+
 import jax
 import numpy as np
 import pytest
@@ -93,9 +95,10 @@ def test_the_kernel_refuses_frames_it_cannot_read():
 
 @needs_kernel
 def test_a_capture_reconstructs_alike_through_the_kernel_and_through_xla(tmp_path, monkeypatch):
-    """A 64×64 capture of 1,200 frames, read into its sub-tiles: each sub-tile's I/Q half runs
-    in the kernel (counted), and the reconstruction equals XLA's I/Q programs' to float32
-    rounding: the same statuses, depths within 1e-9 of themselves, σ and SNR within 1e-4."""
+    """A 64×64 capture of 1,200 frames in two tiles, read into their sub-tiles: each sub-tile's
+    I/Q half runs in the kernel (counted; its sequence buffers taken again once read), and the
+    reconstruction equals XLA's I/Q programs' to float32 rounding: the same statuses, depths
+    within 1e-9 of themselves, σ and SNR within 1e-4."""
     rng = np.random.default_rng(21)
     path = tmp_path / "c.h5"
     depth = 30.5 + 0.2 * rng.random((64, 64))
@@ -106,7 +109,7 @@ def test_a_capture_reconstructs_alike_through_the_kernel_and_through_xla(tmp_pat
         return frames
 
     Writer(frequencies_hz=PAPER_FREQUENCIES_HZ[:1200]).write(path, depth, rng, alter=bad_pixels, chunks=(1, 4, 32, 64))
-    options = ReconstructOptions(method="ml", progress=False)
+    options = ReconstructOptions(method="ml", progress=False, tile_rows=32)  # two tiles
     calls = []
     kernel = native.iq_half
     monkeypatch.setattr(native, "iq_half", lambda *a: calls.append(1) or kernel(*a))
@@ -124,3 +127,28 @@ def test_a_capture_reconstructs_alike_through_the_kernel_and_through_xla(tmp_pat
     np.testing.assert_allclose(through_kernel["depth_m"][valid], through_xla["depth_m"][valid], rtol=1e-9)
     for name in ("sigma_m", "snr", "amplitude"):
         np.testing.assert_allclose(through_kernel[name][valid], through_xla[name][valid], rtol=1e-4, err_msg=name)
+
+
+def test_a_sequence_buffer_is_taken_again_only_once_its_inversion_has_run():
+    """`TileDispatcher.free_sequence_buffer`: the oldest buffer whose inversion's output is
+    ready, of the shape asked for; none while it is not (its device array may still read it)."""
+    from cohflash_jax.reconstruct.engine import TileDispatcher
+
+    class Marker:
+        def __init__(self, ready):
+            self.ready = ready
+
+        def is_ready(self):
+            return self.ready
+
+    dispatcher = TileDispatcher.__new__(TileDispatcher)  # only its buffers are used here
+    dispatcher.sequence_buffers = collections.deque()
+    first, second = np.zeros((8, 4), np.float32), np.zeros((8, 4), np.float32)
+    pending, done = Marker(False), Marker(True)
+    dispatcher.sequence_buffers.extend([(first, pending), (second, done)])
+    assert dispatcher.free_sequence_buffer((8, 4)) is None  # the oldest still being read
+    pending.ready = True
+    assert dispatcher.free_sequence_buffer((8, 5)) is None  # another shape
+    assert dispatcher.free_sequence_buffer((8, 4)) is first
+    assert dispatcher.free_sequence_buffer((8, 4)) is second
+    assert dispatcher.free_sequence_buffer((8, 4)) is None

@@ -11,6 +11,7 @@ Measured sizes and timings: docs/performance.md.
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 import contextvars
 import dataclasses
@@ -27,6 +28,9 @@ from ..runtime import EXECUTABLES, device_value, place_on_devices, stream_device
 from ..tiling import BUFFER_ALIGNMENT_BYTES
 from .plan import TilePlan, program_plan
 from .programs import in_two_halves, inversion_half, inversion_plan, prepare_stages, process_stages
+
+# sub-tiles a tile is cut into, at most, for which buffers are kept (`TileDispatcher.sequence_buffers`)
+MAX_SUB_TILES_KEPT = 64
 
 
 def sub_tile_pixels(num_pixels: int, num_frames: int, platform: str | None = None) -> int:
@@ -89,6 +93,9 @@ class TileDispatcher:
         self.no_status = {}  # (pixels, device) → placed zeros: "no upstream status"
         self.all_finite = {}  # (pixels, device) → placed `True`s: integer frames are finite
         self.host_iq_tiles = 0  # tiles whose I/Q halves the native kernel computed (`host_iq`)
+        # the native kernel's rotated-sequence buffers, oldest first, each with an output of the
+        # inversion that reads it (`free_sequence_buffer`); at most two tiles' worth kept
+        self.sequence_buffers = collections.deque(maxlen=2 * MAX_SUB_TILES_KEPT)
         self.prepared = set()  # the kinds of tile `prepare` was asked for
         # the I/Q stage on the host, for the native kernel (`host_iq`): weights, bias, saturation
         stage = plan.iq
@@ -187,13 +194,26 @@ class TileDispatcher:
         weights, bias, stage = self.host_stage
         pixel_map = lambda m: None if m is None else np.asarray(m[..., columns], np.float32)
         weights, bias = folded_weights(weights, bias, pixel_map(dark), pixel_map(gain), np.float32)
-        half = native.iq_half(frames.pieces[k], weights, bias, stage.saturation_dn)
+        piece = frames.pieces[k]
+        half = native.iq_half(piece, weights, bias, stage.saturation_dn, self.free_sequence_buffer(piece.shape[1:]))
         put = lambda x: jax.device_put(x, device)
         finite = self.placed_constant(self.all_finite, True, bool, sub, device)
         flags = (put(half.dead.view(bool)), put(half.saturated.view(bool)), finite)
         iq = (put(half.r), put(half.noise_var), put(half.total_var), flags)
         status = self.zero_status(sub, device) if data_status is None else put(np.asarray(data_status[columns]))
-        return inversion_half(plan, iq, status)
+        result = inversion_half(plan, iq, status)
+        self.sequence_buffers.append((half.r, result["depth_m"]))
+        return result
+
+    def free_sequence_buffer(self, shape: tuple) -> np.ndarray | None:
+        """The oldest rotated-sequence buffer the native kernel wrote whose inversion has run
+        (its device array read it, aliased), for the next sub-tile, or None (a new one): a
+        buffer freed and allocated again was fresh memory to the allocator each time (~30 k
+        page faults a full capture, docs/performance.md)."""
+        buffers = self.sequence_buffers
+        if buffers and buffers[0][0].shape == shape and buffers[0][1].is_ready():
+            return buffers.popleft()[0]
+        return None
 
     def dispatch(self, frames, dark=None, data_status=None, gain=None) -> PendingTile:
         """Dispatch a tile (4, N, P), or read as its sub-tiles (`TilePieces` of `sub_px`), with
