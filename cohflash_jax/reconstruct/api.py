@@ -199,6 +199,11 @@ class TileSource:
         block[:, : r1 - r0] = arr[:, r0:r1]
         return block.reshape(4, self.rows * self.w)
 
+    def release_buffers(self) -> None:
+        """Let go of the reader's tile buffers in the background (`TileBuffers.release_in_background`)."""
+        if self.reader is not None:
+            self.reader.release_in_background()
+
     def feeds_in_thread(self) -> bool:
         """Whether tiles may be dispatched from a thread while the next is read (`TileFeeder`):
         where they are read into their sub-tiles (`PieceReader`), which stay theirs until
@@ -357,6 +362,11 @@ def reconstruct_capture(
                     first_inputs = (block, d, data_status, g)
                     if survey is not None and (feeder is None or r1 >= band_end):
                         follow_survey()  # the next read may take the first tile's buffer, or there is none
+            if isinstance(pending[0], concurrent.futures.Future) and pending[0].result().holds_frames is False:
+                # the last tile's frames were read by the native kernel, not aliased by its device
+                # arrays: the buffers are let go while its inversions run
+                del block, first, first_inputs
+                source.release_buffers()
             collect(pending, bar)
         finally:
             if feeder is not None:

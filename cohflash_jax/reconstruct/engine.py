@@ -16,6 +16,7 @@ import concurrent.futures
 import contextvars
 import dataclasses
 import math
+import threading
 
 import jax
 import jax.numpy as jnp
@@ -225,7 +226,7 @@ class TileDispatcher:
         if self.host_iq(frames):
             self.host_iq_tiles += 1
             parts = [self.invert_host_iq(frames, dark, data_status, gain, k) for k in range(len(frames.pieces))]
-            return PendingTile(parts, p)
+            return PendingTile(parts, p, holds_frames=False)  # read by the kernel, not aliased
 
         def piece(arr, k, device):
             if arr is None:
@@ -292,6 +293,15 @@ class TileBuffers:
     def __init__(self):
         self.buffers = []
         self.last = self.held = None
+
+    def release_in_background(self) -> None:
+        """Let go of the buffers (the caller holds no tile of them) in a thread of their own, so
+        that their memory is unmapped there: at a run's end that was ~0.1 s of one core (the
+        early read's shared pages truncated, docs/performance.md) while the other core finished
+        the last inversions, or waited."""
+        buffers, self.buffers = self.buffers, []
+        self.last = self.held = None
+        threading.Thread(target=buffers.clear, name="release-tile-buffers", daemon=True).start()
 
     def hold_last(self, held: bool) -> None:
         """Whether the last tile read is still in use (its buffer not to be read into next)."""
