@@ -23,8 +23,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .tiling import aligned_empty
+
 LIBRARY_STEM = "native_kernels"  # setup.py's extension: cohflash_jax/native_kernels<suffix>
-ALIGNMENT_BYTES = 64  # JAX aliases (does not copy) host buffers aligned so on the CPU
 
 
 class IQHalf(NamedTuple):
@@ -136,15 +137,6 @@ def description() -> str:
         return f"native I/Q kernel {why}: XLA's I/Q programs run"
     isa = "AVX2" if kernel() is library().cohflash_iq_half_u16_avx2 else "baseline ISA"
     return f"native I/Q kernel ({isa})"
-
-
-def aligned_empty(shape: tuple, dtype) -> np.ndarray:
-    """An uninitialised C-contiguous array at an `ALIGNMENT_BYTES`-aligned address."""
-    dtype = np.dtype(dtype)
-    size = int(np.prod(shape)) * dtype.itemsize
-    raw = np.empty(size + ALIGNMENT_BYTES, np.uint8)
-    start = -raw.ctypes.data % ALIGNMENT_BYTES
-    return raw[start : start + size].view(dtype).reshape(shape)
 
 
 def iq_half(

@@ -43,6 +43,16 @@ MIN_PIXEL_BUCKET = 64
 QUICK_COMPILE_MAX_PIXELS = 1024
 
 
+def aligned_empty(shape: tuple, dtype) -> np.ndarray:
+    """An uninitialised C-contiguous array at a `BUFFER_ALIGNMENT_BYTES`-aligned address, which
+    a CPU device array aliases (`jax.device_put` does not copy it)."""
+    dtype = np.dtype(dtype)
+    size = math.prod(shape) * dtype.itemsize
+    raw = np.empty(size + BUFFER_ALIGNMENT_BYTES, np.uint8)
+    start = -raw.ctypes.data % BUFFER_ALIGNMENT_BYTES
+    return raw[start : start + size].view(dtype).reshape(shape)
+
+
 def rows_per_tile(shape: tuple[int, int, int], itemsize: int = 2, tile_rows: int | None = None) -> int:
     """Rows per streamed tile of a capture of `shape` (frames, height, width) stored with
     `itemsize` bytes a value: `tile_rows` where given, else whole multiples of

@@ -165,7 +165,8 @@ def test_tiles_read_straight_into_their_sub_tiles_equal_hdf5_reads(
     pieces (a CPU device array aliases them); the short last tile is padded with zeros; a tile
     still in use keeps its buffer, the next tile going into the other."""
     from cohflash_jax import native
-    from cohflash_jax.reconstruct.engine import BUFFER_ALIGNMENT_BYTES, PieceReader
+    from cohflash_jax.reconstruct.engine import PieceReader
+    from cohflash_jax.tiling import BUFFER_ALIGNMENT_BYTES
 
     if native_reads and not native.reads_chunks():
         pytest.skip("the native kernel was not built (no C compiler)")

@@ -18,6 +18,7 @@ from cohflash_jax.reconstruct import programs as P
 from cohflash_jax.reconstruct.api import tile_rows
 from cohflash_jax.reconstruct.engine import PieceReader
 from cohflash_jax.reconstruct.plan import IQStage
+from cohflash_jax.tiling import BUFFER_ALIGNMENT_BYTES
 
 from .independent_writer import PAPER_FREQUENCIES_HZ, Writer
 
@@ -76,7 +77,7 @@ def test_the_kernel_gives_the_xla_programs_checks_axis_and_sequence(maps, satura
     np.testing.assert_allclose(half.sin_phase[defined], np.asarray(s)[defined], atol=2e-5)
     scale = np.abs(r[:, defined]).max(axis=0)
     assert np.all(np.abs(half.r[:, defined] - r[:, defined]) <= 2e-5 * scale + 1e-3)
-    assert half.r.ctypes.data % native.ALIGNMENT_BYTES == 0 and half.r.flags.c_contiguous
+    assert half.r.ctypes.data % BUFFER_ALIGNMENT_BYTES == 0 and half.r.flags.c_contiguous
 
 
 @needs_kernel

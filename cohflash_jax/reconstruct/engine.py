@@ -26,12 +26,12 @@ from .. import early_read, native, tiling
 from ..capture import Capture
 from ..estimate.iq import folded_weights
 from ..runtime import EXECUTABLES, device_value, place_on_devices, stream_devices
-from ..tiling import BUFFER_ALIGNMENT_BYTES
 from .plan import TilePlan, program_plan
 from .programs import in_two_halves, inversion_half, inversion_plan, prepare_stages, process_stages
 
-# sub-tiles a tile is cut into, at most, for which buffers are kept (`TileDispatcher.sequence_buffers`)
-MAX_SUB_TILES_KEPT = 64
+# the native kernel's rotated-sequence buffers kept for later sub-tiles, at most
+# (`TileDispatcher.free_sequence_buffer`): two tiles' worth of a full frame (32 sub-tiles a tile)
+SEQUENCE_BUFFERS_KEPT = 64
 
 
 def sub_tile_pixels(num_pixels: int, num_frames: int, platform: str | None = None) -> int:
@@ -43,11 +43,7 @@ def aligned_copy(view: np.ndarray, width: int) -> np.ndarray:
     """A C-contiguous copy of `view`, its last axis zero-padded to `width`, in a 64-byte
     aligned buffer, which `jax.device_put` aliases on the CPU instead of copying again
     (`jnp.asarray` of a strided sub-tile copies twice)."""
-    shape = view.shape[:-1] + (width,)
-    size = math.prod(shape)
-    raw = np.empty(size * view.itemsize + BUFFER_ALIGNMENT_BYTES, np.uint8)
-    start = -raw.ctypes.data % BUFFER_ALIGNMENT_BYTES
-    out = raw[start : start + size * view.itemsize].view(view.dtype).reshape(shape)
+    out = tiling.aligned_empty(view.shape[:-1] + (width,), view.dtype)
     out[..., : view.shape[-1]] = view
     out[..., view.shape[-1] :] = 0
     return out
@@ -95,8 +91,8 @@ class TileDispatcher:
         self.all_finite = {}  # (pixels, device) → placed `True`s: integer frames are finite
         self.host_iq_tiles = 0  # tiles whose I/Q halves the native kernel computed (`host_iq`)
         # the native kernel's rotated-sequence buffers, oldest first, each with an output of the
-        # inversion that reads it (`free_sequence_buffer`); at most two tiles' worth kept
-        self.sequence_buffers = collections.deque(maxlen=2 * MAX_SUB_TILES_KEPT)
+        # inversion that reads it (`free_sequence_buffer`)
+        self.sequence_buffers = collections.deque(maxlen=SEQUENCE_BUFFERS_KEPT)
         self.prepared = set()  # the kinds of tile `prepare` was asked for
         # the I/Q stage on the host, for the native kernel (`host_iq`): weights, bias, saturation
         stage = plan.iq
