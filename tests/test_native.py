@@ -116,12 +116,16 @@ def test_a_capture_reconstructs_alike_through_the_kernel_and_through_xla(tmp_pat
     monkeypatch.setattr(native, "iq_half", lambda *a: calls.append(1) or kernel(*a))
     with Capture(path) as cap:
         layout = PieceReader.of(cap, tile_rows(cap, options)).layout
-        through_kernel = reconstruct_capture(cap, options).outputs
+        with_kernel = reconstruct_capture(cap, options)
+    through_kernel = with_kernel.outputs
+    assert with_kernel.meta["iq_path"].startswith("native I/Q kernel")  # the depth file says so
     sub_tiles = -(-64 // layout.rows) * (layout.rows * 64 // layout.sub)
     assert sub_tiles > 1 and len(calls) == (sub_tiles if jax.default_backend() == "cpu" else 0)
     monkeypatch.setattr(native, "available", lambda: False)
     with Capture(path) as cap:
-        through_xla = reconstruct_capture(cap, options).outputs
+        with_xla = reconstruct_capture(cap, options)
+    through_xla = with_xla.outputs
+    assert with_xla.meta["iq_path"] == "XLA's I/Q programs"
     np.testing.assert_array_equal(through_kernel["fit_status"], through_xla["fit_status"])
     valid = through_xla["valid"].astype(bool)
     assert valid.sum() > 4000 and not valid[3, 3] and not valid[40, 7]

@@ -131,7 +131,7 @@ def _describe_depth(path: Path) -> str:
     if "jax_device" in prov:  # where it ran: a small capture runs on the CPU even beside a GPU
         lines.append(
             f"made by cohflash {prov.get('cohflash_version', '?')}, JAX {prov.get('jax_version', '?')} "
-            f"on {prov['jax_device']}"
+            f"on {prov['jax_device']}" + (f"; I/Q: {meta['iq_path']}" if "iq_path" in meta else "")
         )
     lines += [f"note: {n}" for n in json.loads(meta.get("notes", "[]"))]
     return "\n".join(lines)

@@ -289,11 +289,14 @@ def reconstruct_capture(
     t0 = time.perf_counter()
     source = TileSource(capture, maps, registration_maps, rows)
     outputs = {}
+    native_tiles = 0  # tiles whose I/Q halves the native kernel computed (the depth file's `iq_path`)
 
     def collect(pending, bar):
+        nonlocal native_tiles
         tile, r0, r1 = pending
         if isinstance(tile, concurrent.futures.Future):
             tile = tile.result()
+        native_tiles += tile.native_iq
         for k, v in tile.gather().items():
             arr = v.reshape(rows, w)[: r1 - r0]
             band = outputs.setdefault(k, np.empty((band_end - band_start, w), arr.dtype))
@@ -362,7 +365,7 @@ def reconstruct_capture(
                     first_inputs = (block, d, data_status, g)
                     if survey is not None and (feeder is None or r1 >= band_end):
                         follow_survey()  # the next read may take the first tile's buffer, or there is none
-            if isinstance(pending[0], concurrent.futures.Future) and pending[0].result().holds_frames is False:
+            if isinstance(pending[0], concurrent.futures.Future) and pending[0].result().native_iq:
                 # the last tile's frames were read by the native kernel, not aliased by its device
                 # arrays: the buffers are let go while its inversions run
                 del block, first, first_inputs
@@ -376,7 +379,7 @@ def reconstruct_capture(
         options,
         alignment,
         seconds=time.perf_counter() - t0,
-        iq_path=native.description() if dispatcher.host_iq_tiles else "XLA's I/Q programs",
+        iq_path=native.description() if native_tiles else "XLA's I/Q programs",
         registered=registration_maps is not None,
         crlb_at_unit_snr_m=crlb_at_unit_snr_m(instrument.sweep.frequencies_hz, plan.geometry.dominant_order),
     )

@@ -67,6 +67,7 @@ class PendingTile:
     parts: list
     num_pixels: int
     holds_frames: bool = True  # the device arrays may alias the host frames until gathered
+    native_iq: bool = False  # its I/Q halves computed by the native kernel (`TileDispatcher.host_iq`)
 
     def gather(self) -> dict:
         """Join the sub-tiles' results → dict of (P,) NumPy arrays (blocks until computed)."""
@@ -89,7 +90,6 @@ class TileDispatcher:
         self.placed = place_on_devices((plan.iq, inversion_plan(plan), carrier), self.devices)
         self.no_status = {}  # (pixels, device) → placed zeros: "no upstream status"
         self.all_finite = {}  # (pixels, device) → placed `True`s: integer frames are finite
-        self.host_iq_tiles = 0  # tiles whose I/Q halves the native kernel computed (`host_iq`)
         # the native kernel's rotated-sequence buffers, oldest first, each with an output of the
         # inversion that reads it (`free_sequence_buffer`)
         self.sequence_buffers = collections.deque(maxlen=SEQUENCE_BUFFERS_KEPT)
@@ -220,9 +220,8 @@ class TileDispatcher:
         p, sub = self.cut(frames)
         several = len(self.devices) > 1
         if self.host_iq(frames):
-            self.host_iq_tiles += 1
             parts = [self.invert_host_iq(frames, dark, data_status, gain, k) for k in range(len(frames.pieces))]
-            return PendingTile(parts, p, holds_frames=False)  # read by the kernel, not aliased
+            return PendingTile(parts, p, holds_frames=False, native_iq=True)  # read by the kernel, not aliased
 
         def piece(arr, k, device):
             if arr is None:
