@@ -54,10 +54,15 @@ def library_path() -> Path | None:
     return None
 
 
+def turned_off() -> bool:
+    """Whether the environment turns the kernels off (`COHFLASH_NATIVE=0`)."""
+    return os.environ.get("COHFLASH_NATIVE", "1") == "0"
+
+
 @functools.cache
 def library():
     """The loaded library (ctypes), or None where it is not built or `COHFLASH_NATIVE=0`."""
-    if os.environ.get("COHFLASH_NATIVE", "1") == "0":
+    if turned_off():
         return None
     path = library_path()
     if path is None:
@@ -133,7 +138,7 @@ def read_chunks(fd: int, offsets: np.ndarray, wants: np.ndarray, iovec_addresses
 def description() -> str:
     """The kernel in words, for benchmarks and depth files: built or not, and for which ISA."""
     if library() is None:
-        why = "off (COHFLASH_NATIVE=0)" if os.environ.get("COHFLASH_NATIVE", "1") == "0" else "not built"
+        why = "off (COHFLASH_NATIVE=0)" if turned_off() else "not built"
         return f"native I/Q kernel {why}: XLA's I/Q programs run"
     isa = "AVX2" if kernel() is library().cohflash_iq_half_u16_avx2 else "baseline ISA"
     return f"native I/Q kernel ({isa})"

@@ -29,6 +29,12 @@ from .policy import MAX_FIT_EXCURSION_BINS, classify
 SPLIT_AXIS_MIN_FRAMES = 512
 
 
+def run_program(program, *arguments):
+    """Run `program` on `arguments`: how `process_stages` and its halves call each program
+    unless told otherwise (`prepare_stages` only gets them ready)."""
+    return program(*arguments)
+
+
 def process_tile(plan: TilePlan, frames, dark, data_status=None, gain=None, carrier_phase_rad=None):
     """Depth and companions for a tile of pixels: frames (4, N, P) → dict of (P,) arrays.
     `dark` (4, P): per-pixel offsets (DN); `gain` (4, P): per-pixel gains relative to the
@@ -40,12 +46,19 @@ def process_tile(plan: TilePlan, frames, dark, data_status=None, gain=None, carr
 
 
 def process_stages(
-    stage: IQStage, plan: TilePlan, frames, dark, data_status=None, gain=None, carrier_phase_rad=None, *, run=None
+    stage: IQStage,
+    plan: TilePlan,
+    frames,
+    dark,
+    data_status=None,
+    gain=None,
+    carrier_phase_rad=None,
+    *,
+    run=run_program,
 ):
     """`process_tile` with its plan already split into the I/Q stage and the `inversion_plan`:
     a dispatcher splits it once, not once a sub-tile (a 10 Hz map has ten). `run(program,
     *arguments)` calls each program (default: runs it; `prepare_stages` passes another)."""
-    run = run or (lambda program, *arguments: program(*arguments))
     if in_two_halves(stage, frames):
         iq = iq_half(stage, frames, dark, gain, carrier_phase_rad, run=run)
         return inversion_half(plan, iq, data_status, run=run)
@@ -66,18 +79,16 @@ def in_two_halves(stage: IQStage, frames) -> bool:
     return frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES and not stage.tracking
 
 
-def iq_half(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=None, *, run=None):
+def iq_half(stage: IQStage, frames, dark, gain=None, carrier_phase_rad=None, *, run=run_program):
     """The data checks, the carrier axis and the rotated sequence of a sub-tile (`in_two_halves`)
     → the inversion's inputs (r, noise variance, total variance, flags)."""
-    run = run or (lambda program, *arguments: program(*arguments))
     (c, s, noise_var, total_var), flags = run(axis_and_checks, stage, frames, dark, gain, carrier_phase_rad)
     r = run(rotated_from_frames, stage, frames, dark, c, s, gain, carrier_phase_rad)
     return r, noise_var, total_var, flags
 
 
-def inversion_half(plan: TilePlan, iq: tuple, data_status=None, *, run=None):
+def inversion_half(plan: TilePlan, iq: tuple, data_status=None, *, run=run_program):
     """The inversion of a sub-tile from its I/Q half (`iq_half`, or the native kernel's)."""
-    run = run or (lambda program, *arguments: program(*arguments))
     return run(invert_sequence, plan, *iq, data_status)
 
 
