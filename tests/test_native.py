@@ -164,3 +164,34 @@ def test_a_sequence_buffer_is_taken_again_only_once_its_inversion_has_run():
     assert dispatcher.free_sequence_buffer((8, 4)) is first
     assert dispatcher.free_sequence_buffer((8, 4)) is second
     assert dispatcher.free_sequence_buffer((8, 4)) is None
+
+
+@needs_kernel
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="the kernel runs on the CPU only")
+def test_the_kernels_sub_tiles_run_the_inversion_prepared_for_the_tile(tmp_path, monkeypatch):
+    """The kernel's outputs go to the inversion as host arrays (no `jax.device_put` each:
+    `runtime.host_arrays_placed`), and that call runs the very program `TileDispatcher.prepare`
+    compiled from the tile's shapes for arrays placed on each device: dispatching the tile
+    through the kernel compiles nothing more."""
+    import cohflash_jax as cf
+    from cohflash_jax import runtime
+    from cohflash_jax.reconstruct import TileDispatcher, build_plan
+    from cohflash_jax.reconstruct.engine import TilePieces
+    from cohflash_jax.tiling import aligned_empty
+
+    n, sub, count = P.SPLIT_AXIS_MIN_FRAMES, 16, 2
+    frames = frames_with_bad_pixels(n, (4, sub * count // 4), seed=8)
+    pieces = aligned_empty((count, 4, n, sub), np.uint16)
+    pieces[...] = frames.reshape(4, n, count, sub).transpose(2, 0, 1, 3)
+    tile = TilePieces(list(pieces), pieces.transpose(1, 2, 0, 3))
+    monkeypatch.setattr(runtime.EXECUTABLES, "folder", tmp_path)
+    with runtime.quick_compile():
+        plan = build_plan(cf.Instrument.paper(n), ReconstructOptions(method="ml", progress=False), 16383.0)
+        dispatcher = TileDispatcher(plan, sub_px=sub)  # two sub-tiles: one a device where there are two
+        before = runtime.EXECUTABLES.compiled
+        dispatcher.prepare(tile).result(timeout=600)
+        assert runtime.EXECUTABLES.compiled - before == 1  # the inversion
+        pending = dispatcher.dispatch(tile)
+        result = pending.gather()
+        assert pending.native_iq and runtime.EXECUTABLES.compiled - before == 1  # nothing more
+    assert result["depth_m"].shape == (sub * count,) and np.isfinite(result["depth_m"]).all()
