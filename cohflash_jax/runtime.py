@@ -238,8 +238,9 @@ def host_arrays_placed(signature: tuple) -> tuple:
     """An argument signature (`_argument_signature` of each array) with its host (NumPy) arrays
     taken as placed on the device of the first placed array, where there is one: a compiled
     program places a host array on its own device (aliased where it is aligned, not copied),
-    so a call with host arrays runs the program a call with them placed runs, without a
-    `jax.device_put` for each (~20–50 µs of the calling thread's time each)."""
+    so a call with host arrays runs the program a call with them placed runs, without the
+    caller's `jax.device_put` of each (docs/performance.md). A program over several devices
+    keeps host arrays apart."""
     if all(s[3] is not None for s in signature):
         return signature
     import jax
