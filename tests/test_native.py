@@ -172,14 +172,15 @@ def test_the_kernels_sub_tiles_run_the_inversion_prepared_for_the_tile(tmp_path,
     """The kernel's outputs go to the inversion as host arrays (no `jax.device_put` each:
     `runtime.host_arrays_placed`), and that call runs the very program `TileDispatcher.prepare`
     compiled from the tile's shapes for arrays placed on each device: dispatching the tile
-    through the kernel compiles nothing more."""
+    through the kernel compiles nothing more (with a signature of its own, the host arrays'
+    call would compile a second inversion)."""
     import cohflash_jax as cf
     from cohflash_jax import runtime
     from cohflash_jax.reconstruct import TileDispatcher, build_plan
     from cohflash_jax.reconstruct.engine import TilePieces
     from cohflash_jax.tiling import aligned_empty
 
-    n, sub, count = P.SPLIT_AXIS_MIN_FRAMES, 16, 2
+    n, sub, count = P.SPLIT_AXIS_MIN_FRAMES, 8, 2  # sub-tiles of a size no other test's programs take
     frames = frames_with_bad_pixels(n, (4, sub * count // 4), seed=8)
     pieces = aligned_empty((count, 4, n, sub), np.uint16)
     pieces[...] = frames.reshape(4, n, count, sub).transpose(2, 0, 1, 3)
@@ -190,8 +191,9 @@ def test_the_kernels_sub_tiles_run_the_inversion_prepared_for_the_tile(tmp_path,
         dispatcher = TileDispatcher(plan, sub_px=sub)  # two sub-tiles: one a device where there are two
         before = runtime.EXECUTABLES.compiled
         dispatcher.prepare(tile).result(timeout=600)
-        assert runtime.EXECUTABLES.compiled - before == 1  # the inversion
+        prepared = runtime.EXECUTABLES.compiled
+        assert prepared - before <= 1  # the inversion (none where this process made it already)
         pending = dispatcher.dispatch(tile)
         result = pending.gather()
-        assert pending.native_iq and runtime.EXECUTABLES.compiled - before == 1  # nothing more
+        assert pending.native_iq and runtime.EXECUTABLES.compiled == prepared  # nothing more
     assert result["depth_m"].shape == (sub * count,) and np.isfinite(result["depth_m"]).all()
