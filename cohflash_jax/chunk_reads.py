@@ -178,35 +178,40 @@ class DirectChunkReader:
         straight into the pieces of `scatter_table`'s `tables`: each chunk with one `preadv`
         that scatters its frames' rows to the pieces they belong to, so a piece is ready to be
         computed on without a copy."""
-        fc = self.chunks[1]
-        start = [t.ctypes.data for t in tables]  # each chunk's IOVECs: (c, g) rows of its band's table
-        runs = [t.shape[-1] // fc for t in tables]
-        groups = tables[0].shape[1]
+        offsets, wants, addresses, counts = self.piece_reads(tables, rows)
         if native.reads_chunks():  # the whole tile in one call (`native.read_chunks`)
-            self.read_chunks_natively(start, runs, groups, rows)
-            return
-        for c, g, n0, k, b, band, offset, want in self.chunks_of(rows):
-            address = start[b] + (c * groups + g) * fc * runs[b] * IOVEC.itemsize
-            self.check_read(PREADV(self.fd, address, k * runs[b], offset), want, (c, n0, band, 0))
-
-    def read_chunks_natively(self, start: list, runs: list, groups: int, rows: slice) -> None:
-        """`read_rows_into_pieces`'s reads, in `chunks_of`'s order, as arrays for
-        `native.read_chunks`: one call for the tile, not one a chunk from the interpreter."""
-        _, n, _, w = self.shape
-        _, fc, rc, _ = self.chunks
-        r0, r1, _ = rows.indices(self.shape[2])
-        offsets = self.offsets[:, :, r0 // rc : -(-r1 // rc)]  # (4, frame chunks, bands)
-        held = np.minimum(fc, n - fc * np.arange(groups))[None, :, None]  # frames of data a chunk holds
-        runs = np.asarray(runs, np.uint64)[None, None, :]
-        first = (np.arange(4)[:, None, None] * groups + np.arange(groups)[None, :, None]).astype(np.uint64)
-        addresses = np.asarray(start, np.uint64)[None, None, :] + first * np.uint64(fc * IOVEC.itemsize) * runs
-        counts = np.broadcast_to(held.astype(np.uint64) * runs, offsets.shape)
-        wants = np.broadcast_to(held * rc * w * self.itemsize, offsets.shape)
-        short = native.read_chunks(self.fd, offsets.ravel(), wants.ravel(), addresses.ravel(), counts.ravel())
+            short = native.read_chunks(self.fd, offsets.ravel(), wants.ravel(), addresses.ravel(), counts.ravel())
+        else:  # one call a chunk, in the same order
+            short = None
+            for i, (offset, want, address, count) in enumerate(
+                zip(*(a.ravel().tolist() for a in (offsets, wants, addresses, counts)))
+            ):
+                if (got := PREADV(self.fd, address, count, offset)) != want:
+                    short = (i, got, ctypes.get_errno())
+                    break
         if short is not None:
             index, got, errno = short
             c, g, b = (int(i) for i in np.unravel_index(index, offsets.shape))
+            r0, fc, rc = rows.indices(self.shape[2])[0], self.chunks[1], self.chunks[2]
             self.check_read(got, int(wants[c, g, b]), (c, g * fc, r0 + b * rc, 0), errno)
+
+    def piece_reads(self, tables: list[np.ndarray], rows: slice) -> tuple:
+        """`read_rows_into_pieces`'s reads, in `chunks_of`'s order, as arrays (4, frame chunks,
+        bands): each chunk's file offset, its bytes of data, the address of its `IOVEC`s in
+        `tables` and their count."""
+        _, n, _, w = self.shape
+        _, fc, rc, _ = self.chunks
+        r0, r1, _ = rows.indices(self.shape[2])
+        groups = tables[0].shape[1]
+        offsets = self.offsets[:, :, r0 // rc : -(-r1 // rc)]
+        held = np.minimum(fc, n - fc * np.arange(groups))[None, :, None]  # frames of data a chunk holds
+        runs = np.asarray([t.shape[-1] // fc for t in tables], np.uint64)[None, None, :]  # IOVECs a frame
+        first = (np.arange(4)[:, None, None] * groups + np.arange(groups)[None, :, None]).astype(np.uint64)
+        start = np.asarray([t.ctypes.data for t in tables], np.uint64)[None, None, :]  # (c, g) rows of a band's table
+        addresses = start + first * np.uint64(fc * IOVEC.itemsize) * runs
+        counts = np.broadcast_to(held.astype(np.uint64) * runs, offsets.shape)
+        wants = np.broadcast_to(held * rc * w * self.itemsize, offsets.shape)
+        return offsets, wants, addresses, counts
 
     def close(self):
         if self.fd is not None:
