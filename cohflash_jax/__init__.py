@@ -17,11 +17,12 @@ import sys as _sys
 # imports run (`early_read`: forked here, before any thread), no garbage collection until the
 # command module is imported (`cli`), NumPy's BLAS on one thread (set before NumPy loads it), a
 # GPU's memory taken on demand and a small capture reconstructed on the CPU (both set before
-# JAX's backends start)
+# JAX's backends start), JAX's search for a ROCm plugin by folder names while it imports
 from .early_read import start_for_cli as _start_early_read_for_cli
 from .process import gpu_memory_on_demand_for_cli as _gpu_memory_on_demand_for_cli
 from .process import pause_garbage_collection_for_cli as _pause_garbage_collection_for_cli
 from .process import preload_allocator_for_cli as _preload_allocator_for_cli
+from .process import rocm_plugin_scan_by_folder_names_for_cli as _rocm_plugin_scan_by_folder_names_for_cli
 from .process import single_threaded_blas_for_cli as _single_threaded_blas_for_cli
 from .process import small_captures_on_cpu_for_cli as _small_captures_on_cpu_for_cli
 
@@ -32,7 +33,8 @@ _single_threaded_blas_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 _gpu_memory_on_demand_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 _small_captures_on_cpu_for_cli(getattr(_sys, "orig_argv", _sys.argv))
 
-import jax as _jax  # noqa: E402
+with _rocm_plugin_scan_by_folder_names_for_cli(getattr(_sys, "orig_argv", _sys.argv)):
+    import jax as _jax  # noqa: E402
 
 _jax.config.update("jax_enable_x64", True)
 

@@ -7,10 +7,12 @@ environment."""
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import json
 import math
 import os
+import re
 import sys
 
 _PAUSED = False  # garbage collection paused by `pause_garbage_collection_for_cli`
@@ -287,3 +289,52 @@ def resume_garbage_collection() -> bool:
     gc.enable()
     _PAUSED = False
     return True
+
+
+# the installed folder of a ROCm PJRT plugin's distribution, e.g. `jax_rocm7_plugin-0.8.0.dist-info`
+# (an installer writes the name normalised: lower case, runs of "-", "_", "." as one "_")
+ROCM_PLUGIN_FOLDER = re.compile(r"jax_rocm\w*_plugin-[^/]*\.(dist|egg)-info", re.IGNORECASE)
+
+
+def rocm_plugin_distributions(paths) -> list:
+    """The distributions installed in the folders `paths` (as `sys.path`) whose folder names
+    are a ROCm PJRT plugin's (`ROCM_PLUGIN_FOLDER`), as `importlib.metadata` gives them."""
+    import importlib.metadata
+    import pathlib
+
+    found = []
+    for entry in paths:
+        try:
+            names = sorted(os.listdir(entry or "."))
+        except (OSError, TypeError):  # a zip file, a missing folder, a non-path entry
+            continue
+        found += [
+            importlib.metadata.PathDistribution(pathlib.Path(entry or ".", name))
+            for name in names
+            if ROCM_PLUGIN_FOLDER.fullmatch(name)
+        ]
+    return found
+
+
+@contextlib.contextmanager
+def rocm_plugin_scan_by_folder_names_for_cli(argv):
+    """Where this interpreter runs a `cohflash` command and JAX is not yet imported: while it
+    is (the `with` block), `importlib.metadata.distributions()` lists only the ROCm plugins'
+    distributions (`rocm_plugin_distributions`). JAX's import looks for a ROCm plugin by
+    reading the metadata of every installed distribution (github.com/jax-ml/jax/issues/37879):
+    ~20 ms of each start among 60 distributions, 250 ms in a large environment; the plugins'
+    folder names find the same ones. Nothing else runs in the process meanwhile (no thread is
+    started before JAX is imported); the function is restored on leaving."""
+    if cli_command(argv) is None or "jax" in sys.modules:
+        yield
+        return
+    import importlib.metadata
+
+    every = importlib.metadata.distributions
+    importlib.metadata.distributions = lambda **kwargs: iter(
+        rocm_plugin_distributions(kwargs.get("path", sys.path)) if not kwargs.keys() - {"path"} else every(**kwargs)
+    )
+    try:
+        yield
+    finally:
+        importlib.metadata.distributions = every

@@ -245,3 +245,25 @@ def test_the_surveys_sampled_gram_gives_the_leading_singular_pairs_of_every_row(
         assert sv[0] > 2 * sv[1]
         assert abs(np.vdot(u[:, 0], full_u[:, 0])) > 0.999
     np.testing.assert_allclose(np.linalg.norm(u, axis=0), 1.0, rtol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_the_surveys_window_means_a_block_of_pixels_at_a_time_are_the_whole_arrays(dtype):
+    """`drift.centred_window_means` averages Z a block of pixels at a time (`WINDOW_MEANS_BLOCK_PIXELS`)
+    so that its temporaries stay small: each pixel's centred whole-window means are those of
+    the whole array's moving average, bit for bit, and the noise variance its mean high-passed
+    power over every frame (a last block narrower than the rest, float32 I/Q kept complex64)."""
+    from cohflash_jax.estimate.drift import WINDOW_MEANS_BLOCK_PIXELS, centred_window_means
+    from cohflash_jax.estimate.iq import DRIFT_WINDOW_FRAMES, moving_average
+
+    rng = np.random.default_rng(5)
+    n, p, half = 1200, 2 * WINDOW_MEANS_BLOCK_PIXELS + 7, DRIFT_WINDOW_FRAMES // 2
+    i, q = (rng.normal(size=(n, p)) * 40 + 300).astype(dtype), (rng.normal(size=(n, p)) * 40 - 100).astype(dtype)
+    z = i + 1j * q
+    average = moving_average(z, DRIFT_WINDOW_FRAMES)
+    whole = average[half : n - half]
+    m, noise_var = centred_window_means(i, q, DRIFT_WINDOW_FRAMES)
+    assert m.dtype == z.dtype and m.shape == (n - 2 * half, p)
+    np.testing.assert_array_equal(m, whole - whole.mean(axis=0))
+    expected = np.mean(np.abs(z.astype(np.complex128) - average) ** 2) / DRIFT_WINDOW_FRAMES
+    np.testing.assert_allclose(noise_var, expected, rtol=1e-5 if dtype == np.float32 else 1e-12)

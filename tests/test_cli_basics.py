@@ -509,6 +509,47 @@ def test_a_reconstruct_process_reads_its_first_tile_while_it_imports(tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
+def test_a_cohflash_process_finds_a_rocm_plugin_by_its_folder_name(tmp_path):
+    """While a `cohflash` command imports JAX, JAX's search for a ROCm plugin (which reads the
+    metadata of every installed distribution) is given only the distributions whose folders are
+    a ROCm plugin's: a plugin installed where Python looks is still found and imported, the
+    scan's function is restored after, and a library user's import is left as it is."""
+    from cohflash_jax import process
+
+    site = tmp_path / "site"
+    (site / "jax_rocm9_plugin").mkdir(parents=True)
+    (site / "jax_rocm9_plugin" / "__init__.py").write_text("")
+    (site / "jax_rocm9_plugin" / "rocm_plugin_extension.py").write_text("FOUND = True\n")
+    info = site / "jax_rocm9_plugin-0.1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: jax-rocm9-plugin\nVersion: 0.1.0\n")
+    (site / "other_tool-1.0.dist-info").mkdir()  # not a plugin: not listed
+    (site / "other_tool-1.0.dist-info" / "METADATA").write_text("Metadata-Version: 2.1\nName: other-tool\n")
+    found = process.rocm_plugin_distributions([str(site), str(tmp_path / "missing"), ""])
+    assert [d.metadata["Name"] for d in found] == ["jax-rocm9-plugin"]
+    probe = (  # counts the calls that list every distribution
+        "import sys, importlib.metadata\n"
+        "listed, every = [], importlib.metadata.distributions\n"
+        "importlib.metadata.distributions = lambda **kw: (listed.append(kw), every(**kw))[1]\n"
+        "counted = importlib.metadata.distributions\n"
+        "sys.orig_argv = [sys.executable, '-m', 'cohflash_jax.cli', *sys.argv[1:]]  # as the command starts\n"
+        "import cohflash_jax\n"
+        "from jax._src.numpy import array_constructors\n"
+        "found = getattr(array_constructors.rocm_plugin_extension, 'FOUND', None)\n"
+        "print(found, importlib.metadata.distributions is counted, len(listed) > 0)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")])}
+    for argv, said in ((["info", "x.h5"], "True True False"), ([], "True True True")):
+        command = [sys.executable, "-c", probe, *argv]
+        done = subprocess.run(command, capture_output=True, text=True, env=env, check=False)
+        assert done.returncode == 0, done.stderr[-2000:]
+        assert done.stdout.strip().split("\n")[-1] == said, done.stdout
+    with process.rocm_plugin_scan_by_folder_names_for_cli(["python", "-m", "pytest"]):  # not a command
+        import importlib.metadata
+
+        assert len(list(importlib.metadata.distributions())) > 1
+
+
 def test_a_cohflash_process_takes_gpu_memory_on_demand_unless_told_otherwise(monkeypatch):
     """A `cohflash` command's interpreter sets XLA_PYTHON_CLIENT_PREALLOCATE=false before JAX
     starts (reserving three quarters of an H200 cost each full-capture run 1.4 s); a user's own setting

@@ -43,17 +43,12 @@ def initial_common_drift(i, q, window_frames: int = DRIFT_WINDOW_FRAMES) -> tupl
     vector is κ·(e^{iφ[m]} − c): a circle, fitted algebraically (Kåsa) to recover φ. Leakage of
     common mode through an uncalibrated hybrid is constant and drops out with the mean.
     Returns (φ (N,) zero-mean, description); φ = 0 when the data show no drift."""
-    z = np.asarray(i) + 1j * np.asarray(q)
-    n, p = z.shape
+    i, q = np.asarray(i), np.asarray(q)
+    n, p = i.shape
     half = window_frames // 2
     if n <= DRIFT_MIN_WINDOWS * window_frames:
         return np.zeros(n), "too few frames to look for a carrier drift"
-    average = moving_average(z, window_frames)
-    # a pure-noise N×P matrix of entry variance v has a top singular value ≈ √v(√N + √P); the
-    # high-passed variance (tone included) over the window bounds v from above
-    noise_var = np.mean(np.abs(z - average) ** 2) / window_frames
-    m = average[half : n - half]  # the shrinking windows at the ends let the tone through
-    m = m - m.mean(axis=0)
+    m, noise_var = centred_window_means(i, q, window_frames)
     u, sv = leading_singular_pairs(m, row_step=GRAM_ROW_STEP)
     floor = math.sqrt(noise_var) * (math.sqrt(m.shape[0]) + math.sqrt(p))
     if sv.size < 2 or not (sv[0] > DRIFT_DETECTION_FACTOR * floor and sv[0] > DRIFT_DETECTION_FACTOR * sv[1]):
@@ -66,16 +61,45 @@ def initial_common_drift(i, q, window_frames: int = DRIFT_WINDOW_FRAMES) -> tupl
     radius = math.sqrt(max(k + abs(centre) ** 2, 0.0))
     spread = np.std(np.abs(lead - centre) - radius) / max(radius, 1e-300)
     if not (radius > 0 and spread < DRIFT_MAX_CIRCLE_SPREAD):
-        return np.zeros(z.shape[0]), f"carrier drift not resolved (circle fit spread {spread:.2f}): treated as static"
+        return np.zeros(n), f"carrier drift not resolved (circle fit spread {spread:.2f}): treated as static"
     phi = np.unwrap(np.angle(lead - centre))
     phi = np.concatenate([np.full(half, phi[0]), phi, np.full(n - half - phi.size, phi[-1])])
-    axis_turn, phase_turn = tone_axis_rotation(z, phi)
+    axis_turn, phase_turn = tone_axis_rotation(i + 1j * q, phi)
     if not axis_turn > DRIFT_MIN_AXIS_TURN_RAD:
         return np.zeros(n), (
             f"a slow common change found, but the tones' axis does not turn ({axis_turn:.2f} rad rms against "
             f"{phase_turn:.2f} for the change): an amplitude change (e.g. the modulator's roll-off), not a drift"
         )
     return phi - phi.mean(), f"common carrier drift found (rms {np.std(phi):.2f} rad)"
+
+
+# Pixels a block of `centred_window_means`: Z's blocks (1.5 MB at 3000 frames) and their
+# moving averages stay in cache, and the allocator hands the same memory back block after block
+# where whole (N, P) temporaries each took fresh pages (docs/performance.md)
+WINDOW_MEANS_BLOCK_PIXELS = 32
+
+
+def centred_window_means(i, q, window_frames: int) -> tuple[np.ndarray, float]:
+    """Z = I + iQ averaged over each whole window of `window_frames` frames, minus
+    each pixel's time mean: (N − 2·half, P), half = window // 2, where the shrinking windows at
+    the ends (which let the tone through) are left out; and the noise variance it implies: the
+    high-passed Z's mean power over every frame, divided by the window (a pure-noise N×P matrix
+    of entry variance v has a top singular value ≈ √v(√N + √P); the high-passed power, tone
+    included, bounds v from above). Computed a block of pixels at a time: each pixel's values
+    are those of the whole array's."""
+    n, p = i.shape
+    half = window_frames // 2
+    m = np.empty((n - 2 * half, p), np.result_type(i.dtype, q.dtype, np.complex64))
+    high_passed_power = 0.0
+    for a in range(0, p, WINDOW_MEANS_BLOCK_PIXELS):
+        cols = slice(a, a + WINDOW_MEANS_BLOCK_PIXELS)
+        z = i[:, cols] + 1j * q[:, cols]
+        average = moving_average(z, window_frames)
+        residual = z - average
+        high_passed_power += np.vdot(residual, residual).real
+        whole = average[half : n - half]
+        m[:, cols] = whole - whole.mean(axis=0)
+    return m, high_passed_power / (n * p) / window_frames
 
 
 def tone_sequences_only(z: np.ndarray, half_width_bins: int = TONE_HALF_WIDTH_BINS) -> np.ndarray:
