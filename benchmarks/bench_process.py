@@ -19,10 +19,12 @@ choose): on a GPU machine, the GPU's rows beside its host CPU's.
 
 Prints the CPU model, its vector ISA (and XLA_FLAGS), the JAX and jaxlib versions, each row's
 median over the rounds and its ratio to the floor and to the NumPy script (ratios taken within a
-round, then their median: these VMs drift by tens of per cent). Printed, never asserted.
+round, then their median: these VMs drift by tens of per cent). Each timed process starts
+`--settle` seconds (default 2) after the last ends, none in the wake of the one before it.
+Printed, never asserted.
 
     python benchmarks/bench_process.py [--capture FILE] [--rounds 3] [--methods ml,dft] [--no-cold]
-                                       [--isas native,AVX2] [--platforms default,cpu]
+                                       [--isas native,AVX2] [--platforms default,cpu] [--settle 2]
 """
 
 from __future__ import annotations
@@ -119,7 +121,15 @@ def platform_list(text: str) -> list[str]:
     return list(dict.fromkeys(v.strip().lower() for v in text.split(",")))
 
 
-def timed(argv: list[str], env: dict | None = None) -> float:
+# seconds each timed process waits before it starts (`--settle`): a process that frees
+# gigabytes (the NumPy script) leaves a VM returning those pages to its host for a while
+# after it exits, and the process right after it ran ~4 % slower (docs/performance.md)
+SETTLE_SECONDS = 2.0
+
+
+def timed(argv: list[str], env: dict | None = None, settle: float = SETTLE_SECONDS) -> float:
+    """Seconds of one whole process, started `settle` seconds after the previous one ended."""
+    time.sleep(settle)
     t0 = time.perf_counter()
     subprocess.run(argv, check=True, env=env, stdout=subprocess.DEVNULL)
     return time.perf_counter() - t0
@@ -131,6 +141,12 @@ def main():
     p.add_argument("--rounds", type=int, default=3, help="interleaved rounds")
     p.add_argument("--methods", default="ml,dft", help="comma-separated estimators to time")
     p.add_argument("--no-cold", action="store_true", help="skip the cold-cache runs")
+    p.add_argument(
+        "--settle",
+        type=float,
+        default=SETTLE_SECONDS,
+        help="seconds to wait before each timed process, so that none starts in the wake of the last",
+    )
     p.add_argument(
         "--isas",
         default="native",
@@ -178,26 +194,26 @@ def run(args, folder: Path):
     for v in variants:  # fill the warm caches
         for m in methods:
             argv = [*cli, "reconstruct", capture, "--out", str(folder / "d.h5"), "--method", m, "--quiet"]
-            timed(argv, env_warm[v])
-        timed([*cli, "reconstruct", small, "--out", str(folder / "s.h5"), "--quiet"], env_warm[v])
+            timed(argv, env_warm[v], settle=0)
+        timed([*cli, "reconstruct", small, "--out", str(folder / "s.h5"), "--quiet"], env_warm[v], settle=0)
 
     rows: dict[str, list[float]] = {}
     ratios: dict[str, list[tuple[float, float]]] = {}
     for r in range(args.rounds):
         this = {}
         for name in scripts:
-            this[name] = timed([sys.executable, str(folder / f"{name.split()[0]}.py"), capture])
+            this[name] = timed([sys.executable, str(folder / f"{name.split()[0]}.py"), capture], settle=args.settle)
         for v in variants:
             cold = lambda what, v=v, r=r: v.environment(folder / f"cache-cold-{what}-{v.slug}-{r}")
             for m in methods:
                 argv = [*cli, "reconstruct", capture, "--out", str(folder / f"d-{m}.h5"), "--method", m, "--quiet"]
-                this[f"cohflash reconstruct --method {m}, warm cache{v.label}"] = timed(argv, env_warm[v])
+                this[f"cohflash reconstruct --method {m}, warm cache{v.label}"] = timed(argv, env_warm[v], args.settle)
                 if not args.no_cold:
-                    this[f"cohflash reconstruct --method {m}, cold cache{v.label}"] = timed(argv, cold(m))
+                    this[f"cohflash reconstruct --method {m}, cold cache{v.label}"] = timed(argv, cold(m), args.settle)
             argv = [*cli, "reconstruct", small, "--out", str(folder / "s.h5"), "--quiet"]
-            this[f"small capture 16×16×3000 (ml), warm cache{v.label}"] = timed(argv, env_warm[v])
+            this[f"small capture 16×16×3000 (ml), warm cache{v.label}"] = timed(argv, env_warm[v], args.settle)
             if not args.no_cold:
-                this[f"small capture 16×16×3000 (ml), cold cache{v.label}"] = timed(argv, cold("small"))
+                this[f"small capture 16×16×3000 (ml), cold cache{v.label}"] = timed(argv, cold("small"), args.settle)
         for name, seconds in this.items():
             rows.setdefault(name, []).append(seconds)
             floor, numpy = this["read once (floor)"], this["NumPy script"]
@@ -211,7 +227,10 @@ def run(args, folder: Path):
     print(allocator_description())
     print(native_description())
     print(bytecode)
-    print(f"capture {capture}; {args.rounds} interleaved rounds, medians; whole processes")
+    print(
+        f"capture {capture}; {args.rounds} interleaved rounds, medians; whole processes, "
+        f"each started {args.settle:g} s after the last"
+    )
     print(f"{'what':56s} {'seconds':>8s} {'× floor':>8s} {'NumPy ÷ it':>10s}")
     for name, values in rows.items():
         over_floor = statistics.median(a for a, _ in ratios[name])
