@@ -292,7 +292,7 @@ def resume_garbage_collection() -> bool:
 
 
 # the installed folder of a ROCm PJRT plugin's distribution, e.g. `jax_rocm7_plugin-0.8.0.dist-info`
-# (an installer writes the name normalised: lower case, runs of "-", "_", "." as one "_")
+# (installers write the project's name with "-" and "." as "_"; any case matches)
 ROCM_PLUGIN_FOLDER = re.compile(r"jax_rocm\w*_plugin-[^/]*\.(dist|egg)-info", re.IGNORECASE)
 
 

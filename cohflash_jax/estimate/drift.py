@@ -96,7 +96,9 @@ def centred_window_means(i, q, window_frames: int) -> tuple[np.ndarray, float]:
         z = i[:, cols] + 1j * q[:, cols]
         average = moving_average(z, window_frames)
         residual = z - average
-        high_passed_power += np.vdot(residual, residual).real
+        high_passed_power += float(
+            np.sum(residual.real**2, dtype=np.float64) + np.sum(residual.imag**2, dtype=np.float64)
+        )
         whole = average[half : n - half]
         m[:, cols] = whole - whole.mean(axis=0)
     return m, high_passed_power / (n * p) / window_frames
