@@ -99,9 +99,10 @@ def test_the_kernel_refuses_frames_it_cannot_read():
 def test_a_capture_reconstructs_alike_through_the_kernel_and_through_xla(tmp_path, monkeypatch):
     """A 64×64 capture of 1,200 frames in two tiles, read into their sub-tiles, with per-pixel
     dark and gain maps: each sub-tile's I/Q half runs in the kernel (counted; its sequence
-    buffers taken again once read), and the reconstruction equals XLA's I/Q programs' to
-    float32 rounding: the same statuses, depths within 1 µm (σ ~0.3 mm), σ
-    and SNR within 1e-4."""
+    buffers taken again once read), both tiles are read into one buffer (the second once the
+    kernel has read the first; XLA's programs alias theirs, two buffers), and the
+    reconstruction equals XLA's I/Q programs' to float32 rounding: the same statuses, depths
+    within 1 µm (σ ~0.3 mm), σ and SNR within 1e-4."""
     rng = np.random.default_rng(21)
     path = tmp_path / "c.h5"
     depth = 30.5 + 0.2 * rng.random((64, 64))
@@ -116,9 +117,11 @@ def test_a_capture_reconstructs_alike_through_the_kernel_and_through_xla(tmp_pat
     # a calibration's dark frame and relative gains, cut per sub-tile as the kernel's weights and bias
     gains = np.concatenate([np.ones((1, 64, 64)), 1 + rng.normal(0, 0.03, (3, 64, 64))])
     maps = PixelMaps(offset_dn=200 + rng.normal(0, 2, (4, 64, 64)), gain=gains)
-    calls = []
+    calls, buffers = [], []
     kernel = native.iq_half
     monkeypatch.setattr(native, "iq_half", lambda *a: calls.append(1) or kernel(*a))
+    new_buffer = PieceReader.new_buffer
+    monkeypatch.setattr(PieceReader, "new_buffer", lambda self: buffers.append(1) or new_buffer(self))
     with Capture(path) as cap:
         layout = PieceReader.of(cap, tile_rows(cap, options)).layout
         with_kernel = reconstruct_capture(cap, options, maps=maps)
@@ -126,11 +129,13 @@ def test_a_capture_reconstructs_alike_through_the_kernel_and_through_xla(tmp_pat
     assert with_kernel.meta["iq_path"].startswith("native I/Q kernel")  # the depth file says so
     sub_tiles = -(-64 // layout.rows) * (layout.rows * 64 // layout.sub)
     assert sub_tiles > 1 and len(calls) == (sub_tiles if jax.default_backend() == "cpu" else 0)
+    assert len(buffers) == 2  # `PieceReader.of`'s, and the reconstruction's one
     monkeypatch.setattr(native, "available", lambda: False)
     with Capture(path) as cap:
         with_xla = reconstruct_capture(cap, options, maps=maps)
     through_xla = with_xla.outputs
     assert with_xla.meta["iq_path"] == "XLA's I/Q programs"
+    assert len(buffers) == 4  # the second tile beside the first, aliased by XLA's programs
     np.testing.assert_array_equal(through_kernel["fit_status"], through_xla["fit_status"])
     valid = through_xla["valid"].astype(bool)
     assert valid.sum() > 4000 and not valid[3, 3] and not valid[40, 7]
