@@ -924,10 +924,11 @@ def prefetch_for_cli(argv) -> bool:
 @functools.cache
 def cpu_model_and_flags() -> tuple[str, frozenset[str]]:
     """The CPU's model name and feature flags as /proc/cpuinfo lists them (the platform's
-    processor name and no flags where it cannot be read)."""
+    processor name and no flags where it cannot be read). The platform's name is asked for
+    only then: on Linux `platform.processor` runs `uname -p` in a child process."""
     import platform
 
-    model, flags = platform.processor() or "unknown CPU", frozenset()
+    model, flags = None, frozenset()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
@@ -937,7 +938,7 @@ def cpu_model_and_flags() -> tuple[str, frozenset[str]]:
                 break
     except OSError:
         pass
-    return model, flags
+    return model or platform.processor() or "unknown CPU", flags
 
 
 def xla_cpu_has_avx512() -> bool:

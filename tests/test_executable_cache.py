@@ -651,3 +651,32 @@ def test_an_executable_cache_compile_leaves_no_entry_in_jaxs_own_cache(tmp_path,
     assert not any("only_in_the_executable_cache" in name for name in jax_entries), jax_entries
     assert runtime.JAX_CACHE_ENTRIES.holders == 0  # JAX's threshold as it was
     assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0
+
+
+def cpuinfo_names_the_model() -> bool:
+    try:
+        with open("/proc/cpuinfo") as f:
+            return any(line.startswith("model name") for line in f)
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not cpuinfo_names_the_model(), reason="the CPU is read from /proc/cpuinfo's model name")
+def test_the_cpu_is_read_without_running_uname(monkeypatch):
+    """Each `reconstruct` asks for the CPU's features (the programs' form, the cache's key):
+    read from /proc/cpuinfo, without `platform.processor`, which on Linux runs `uname -p` in a
+    child process of a process by then holding a GB of memory."""
+    import platform
+
+    from cohflash_jax import runtime
+
+    def refuse():
+        raise AssertionError("platform.processor was called")
+
+    monkeypatch.setattr(platform, "processor", refuse)
+    runtime.cpu_model_and_flags.cache_clear()
+    try:
+        model, flags = runtime.cpu_model_and_flags()
+    finally:
+        runtime.cpu_model_and_flags.cache_clear()
+    assert model and model != "unknown CPU"
