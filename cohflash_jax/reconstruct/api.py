@@ -206,8 +206,9 @@ class TileSource:
 
     def feeds_in_thread(self) -> bool:
         """Whether tiles may be dispatched from a thread while the next is read (`TileFeeder`):
-        where they are read into their sub-tiles (`PieceReader`), which stay theirs until
-        gathered, so no read waits for a dispatch's copies."""
+        where they are read into their sub-tiles (`PieceReader`), which no dispatch copies:
+        a tile XLA's I/Q programs alias keeps its buffer until gathered and the next is read
+        beside its dispatch; one the native kernel reads is read over once its dispatch returns."""
         return isinstance(self.reader, PieceReader)
 
     def hold_last(self, held: bool) -> None:

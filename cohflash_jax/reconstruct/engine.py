@@ -317,9 +317,11 @@ class PieceReader(TileBuffers):
     """Row tiles of a capture read straight into their sub-tiles of whole rows, laid out as
     `layout` says (`Capture.read_tile_into_pieces`): each chunk scattered by one `preadv` to the pieces its
     rows belong to, so no piece is copied out of a tile buffer before it is dispatched (a
-    `BlockReader` tile cut into sub-tiles is). A piece is aliased by its device array until
-    its tile is gathered, so tiles alternate between two buffers (`hold_last`; the caller
-    gathers tile k before reading tile k + 2). None from `of` where the capture's frames are
+    `BlockReader` tile cut into sub-tiles is). A piece dispatched to XLA's I/Q programs is
+    aliased by its device array until its tile is gathered, so such tiles alternate between two
+    buffers (`hold_last`; the caller gathers tile k before reading tile k + 2); pieces the
+    native kernel reads are free once their tile's dispatch returns, and the next tile is read
+    into the same buffer (`reconstruct.api`). None from `of` where the capture's frames are
     not stored for it (`Capture.scatter_tables`)."""
 
     def __init__(self, capture: Capture, layout: tiling.PieceLayout):
