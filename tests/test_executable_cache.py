@@ -676,7 +676,7 @@ def test_the_cpu_is_read_without_running_uname(monkeypatch):
     monkeypatch.setattr(platform, "processor", refuse)
     runtime.cpu_model_and_flags.cache_clear()
     try:
-        model, flags = runtime.cpu_model_and_flags()
+        model, _ = runtime.cpu_model_and_flags()
     finally:
         runtime.cpu_model_and_flags.cache_clear()
     assert model and model != "unknown CPU"
