@@ -333,7 +333,11 @@ def test_pixels_sampled_together_get_the_posteriors_of_pixels_sampled_alone(pape
             b.converged,
         )
         np.testing.assert_array_equal([a.autocorr_steps, a.acceptance], [b.autocorr_steps, b.acceptance])
-    assert [(p.steps, p.converged) for p in together] == [(750, True), (1500, True), (1500, False)]
+    # the case this test is for: a pixel released, converged, while the others step on (which
+    # step it converges at depends on the last bits of the log-probability: JAX's version, the
+    # device), and the faint pixel runs to the limit
+    assert [p.converged for p in together] == [True, True, False]
+    assert min(p.steps for p in together[:2]) < 1500 and together[2].steps == 1500
 
 
 def test_the_vectorised_snooker_move_proposes_as_emcees_own():
