@@ -67,16 +67,27 @@ def compile_options(platform: str, quick: bool, loop_emitters: bool) -> dict:
 # XLA options a compile refused as unknown in this process (`compile_lowered`)
 UNKNOWN_XLA_OPTIONS: set[str] = set()
 
+# What stands in for an option this XLA does not know, where the program's options do not set
+# it themselves (`compile_lowered`). Without the loop emitters (jaxlib 0.11 and later) a program
+# that asked for them (a long sweep's inversion, whose compile is most of a first run) is
+# compiled by LLVM at level 1 instead of XLA's default 2: the fusion emitters' code as fast, in
+# a shorter compile (on JAX 0.12 a first run 0.275 s sooner, the same depth files;
+# docs/performance.md). A quick program keeps its level 0.
+XLA_OPTION_STAND_INS = {"xla_cpu_use_fusion_emitters": {"xla_backend_optimization_level": 1}}
+
 
 def compile_lowered(lowered, options: dict):
     """`lowered` (a `jax.jit(...).lower(...)`) compiled with XLA's `options`, less any this
     XLA does not know. Another jaxlib may drop an option (jaxlib 0.11.2 has no switch for the
     loop emitters of `QUICK_COMPILE_CPU_OPTIONS`): the program is then compiled without it,
-    once found out for the whole process, rather than not compiled ahead (and not cached)."""
+    once found out for the whole process, rather than not compiled ahead (and not cached), with
+    the option's stand-in (`XLA_OPTION_STAND_INS`) where it has one."""
     import re
 
     while True:
         known = {k: v for k, v in options.items() if k not in UNKNOWN_XLA_OPTIONS}
+        for option in set(options) & UNKNOWN_XLA_OPTIONS:
+            known = XLA_OPTION_STAND_INS.get(option, {}) | known
         try:
             return lowered.compile(compiler_options=known)
         except Exception as error:

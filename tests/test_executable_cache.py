@@ -517,6 +517,39 @@ def test_an_option_this_xla_does_not_know_is_left_out_not_the_compile():
         runtime.compile_lowered(lowered, {"xla_backend_optimization_level": "not a level"})
 
 
+def test_an_unknown_option_s_stand_in_is_taken_unless_the_program_sets_it(monkeypatch):
+    """An option this XLA does not know compiles with its stand-in (`XLA_OPTION_STAND_INS`:
+    the loop emitters' is LLVM's level 1), unless the program's own options set what the
+    stand-in would (a quick program's level 0 stays 0); and this XLA's loop emitters' switch is
+    found out as XLA itself answers it."""
+    import jax
+    import jax.numpy as jnp
+    import pytest
+
+    from cohflash_jax import runtime
+
+    lowered = jax.jit(lambda x: jnp.cumsum(jnp.sin(x))).lower(jnp.arange(5.0))
+    unknown = "xla_cpu_another_option_no_xla_has"
+    # a stand-in XLA refuses shows that it was asked for
+    monkeypatch.setitem(runtime.XLA_OPTION_STAND_INS, unknown, {"xla_backend_optimization_level": "not a level"})
+    with pytest.raises(Exception, match="xla_backend_optimization_level"):
+        runtime.compile_lowered(lowered, {unknown: True})
+    assert unknown in runtime.UNKNOWN_XLA_OPTIONS
+    compiled = runtime.compile_lowered(lowered, {unknown: True, "xla_backend_optimization_level": 0})
+    np.testing.assert_allclose(np.asarray(compiled(jnp.arange(5.0))), np.cumsum(np.sin(np.arange(5.0))), rtol=1e-6)
+    # the loop emitters: known to this XLA, or left out for their stand-in
+    switch = runtime.QUICK_COMPILE_CPU_OPTIONS
+    try:
+        lowered.compile(compiler_options=switch)
+        has_loop_emitters = True
+    except Exception as error:
+        assert "No such compile option" in str(error), error
+        has_loop_emitters = False
+    runtime.compile_lowered(lowered, switch)
+    assert (set(switch) & runtime.UNKNOWN_XLA_OPTIONS == set()) is has_loop_emitters
+    assert set(switch) <= set(runtime.XLA_OPTION_STAND_INS)
+
+
 def test_a_program_prepared_in_a_thread_is_got_once_and_a_call_meanwhile_waits(tmp_path, monkeypatch):
     """`prepare` gets a program from its arguments' shapes (`jax.ShapeDtypeStruct`s placed on
     a device) in another thread; a call made while it compiles waits for that compile instead
