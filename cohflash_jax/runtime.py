@@ -71,7 +71,7 @@ UNKNOWN_XLA_OPTIONS: set[str] = set()
 # it themselves (`compile_lowered`). Without the loop emitters (jaxlib 0.11 and later) a program
 # that asked for them (a long sweep's inversion, whose compile is most of a first run) is
 # compiled by LLVM at level 1 instead of XLA's default 2: the fusion emitters' code as fast, in
-# a shorter compile (on JAX 0.12 a first run 0.275 s sooner, the same depth files;
+# a shorter compile (on JAX 0.12 a first run 0.255 s sooner, the same depth files;
 # docs/performance.md). A quick program keeps its level 0.
 XLA_OPTION_STAND_INS = {"xla_cpu_use_fusion_emitters": {"xla_backend_optimization_level": 1}}
 
