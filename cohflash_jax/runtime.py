@@ -790,6 +790,23 @@ CLI_CPU_STREAMS = 1
 COMMAND_CPU_STREAMS = {"simulate": 2, "stream": 2, "reconstruct": 2}
 
 
+# jaxlib versions whose CPU client hangs with several CPU devices: under jaxlib 0.11.2 a
+# `cohflash reconstruct` over two CPU devices waited for ever on a result in 3 of 4 runs (a 64×64
+# capture of 1,200 frames; no thread working, with or without the compile cache and the native
+# kernel), where 0.10.2 and 0.12.0.1 never did (docs/performance.md). They get one CPU device.
+SINGLE_CPU_STREAM_JAXLIBS = ("0.11.",)
+
+
+def several_cpu_streams_run(jaxlib_version: str | None = None) -> bool:
+    """Whether this jaxlib (or `jaxlib_version`) runs several CPU devices without hanging
+    (`SINGLE_CPU_STREAM_JAXLIBS`)."""
+    if jaxlib_version is None:
+        import jaxlib
+
+        jaxlib_version = jaxlib.__version__
+    return not jaxlib_version.startswith(SINGLE_CPU_STREAM_JAXLIBS)
+
+
 def cli_cpu_streams(command: str | None) -> int:
     """The number of JAX CPU devices the `cohflash` command `command` runs with."""
     return COMMAND_CPU_STREAMS.get(command, CLI_CPU_STREAMS)
@@ -800,9 +817,12 @@ def use_cpu_streams(count: int = CLI_CPU_STREAMS) -> int:
     simulation its frame chunks (`stream_devices`), so that several programs run at once.
     Every program is compiled once per device. Takes effect only before JAX's first
     computation in the process (the CLI calls it first thing); afterwards it changes nothing.
-    Returns the number of CPU devices in force (0 where `JAX_PLATFORMS` leaves the CPU out)."""
+    Returns the number of CPU devices in force (0 where `JAX_PLATFORMS` leaves the CPU out); one
+    where this jaxlib hangs with more (`several_cpu_streams_run`)."""
     import jax
 
+    if not several_cpu_streams_run():
+        count = min(int(count), 1)
     try:
         jax.config.update("jax_num_cpu_devices", int(count))
     except RuntimeError:  # JAX already initialised its backends: keep what it has

@@ -260,6 +260,10 @@ def test_two_cpu_streams_give_the_same_bits(comb, tmp_path):
     A process with two devices must reconstruct the same frames to the same bits as this one."""
     if jax.default_backend() != "cpu":
         pytest.skip("two CPU streams are the CPU's: on a GPU the sub-tiles go to the GPU")
+    from cohflash_jax.runtime import several_cpu_streams_run
+
+    if not several_cpu_streams_run():
+        pytest.skip("this jaxlib hangs with two CPU devices: its processes get one")
     import subprocess
     import sys
 
