@@ -482,8 +482,13 @@ def test_a_stream_over_two_cpu_streams_takes_its_last_runs_programs(tmp_path):
     every device, the prefetched programs refused one device's arguments and were compiled
     again every run; loaded first as compiled, an entry for the second device was loaded
     whole, refused, and loaded again.)"""
-    from cohflash_jax.cli import main
+    import pytest
 
+    from cohflash_jax.cli import main
+    from cohflash_jax.runtime import several_cpu_streams_run
+
+    if not several_cpu_streams_run():
+        pytest.skip("this jaxlib hangs with two CPU devices: its processes get one")
     capture = tmp_path / "c.h5"  # 512 px of 35 frames: two sub-tiles, one on each device
     assert main(["simulate", "planar", "--size", "16x32", "--steps", "35", "--out", str(capture), "--quiet"]) == 0
     cache, argv = tmp_path / "cache", ["stream", capture, "--out-dir", tmp_path / "maps"]
