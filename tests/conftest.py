@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import cohflash_jax as cf
-from cohflash_jax.runtime import enable_compilation_cache
+from cohflash_jax.runtime import enable_compilation_cache, several_cpu_streams_run
 
 # The CLI keeps compiled programs in ~/.cache/cohflash/jax. The tests keep theirs in a folder of
 # this run alone, shared by its xdist workers (one compiles a program, the other loads it),
@@ -23,6 +23,12 @@ RUN_CACHE = (
 )
 os.environ["COHFLASH_JAX_CACHE"] = str(RUN_CACHE)
 enable_compilation_cache(RUN_CACHE)
+
+
+# tests of a process over two CPU devices, which a jaxlib that hangs with them does not get
+needs_two_cpu_streams = pytest.mark.skipif(
+    not several_cpu_streams_run(), reason="this jaxlib hangs with two CPU devices: its processes get one"
+)
 
 
 def pin_worker_to_its_cores() -> list[int] | None:

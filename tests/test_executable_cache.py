@@ -13,6 +13,8 @@ import jax
 import numpy as np
 import pytest
 
+from .conftest import needs_two_cpu_streams
+
 RUN = textwrap.dedent(
     """
     import json, sys
@@ -474,6 +476,7 @@ def test_a_zarr_store_run_loads_its_last_runs_programs_while_it_imports(tmp_path
     assert second["compiled"] == 0
 
 
+@needs_two_cpu_streams
 def test_a_stream_over_two_cpu_streams_takes_its_last_runs_programs(tmp_path):
     """`cohflash stream` runs on two CPU devices (`runtime.COMMAND_CPU_STREAMS`), a short
     sweep's sub-tiles dealt out to both: each program is compiled once, for the first device,
@@ -482,13 +485,8 @@ def test_a_stream_over_two_cpu_streams_takes_its_last_runs_programs(tmp_path):
     every device, the prefetched programs refused one device's arguments and were compiled
     again every run; loaded first as compiled, an entry for the second device was loaded
     whole, refused, and loaded again.)"""
-    import pytest
-
     from cohflash_jax.cli import main
-    from cohflash_jax.runtime import several_cpu_streams_run
 
-    if not several_cpu_streams_run():
-        pytest.skip("this jaxlib hangs with two CPU devices: its processes get one")
     capture = tmp_path / "c.h5"  # 512 px of 35 frames: two sub-tiles, one on each device
     assert main(["simulate", "planar", "--size", "16x32", "--steps", "35", "--out", str(capture), "--quiet"]) == 0
     cache, argv = tmp_path / "cache", ["stream", capture, "--out-dir", tmp_path / "maps"]

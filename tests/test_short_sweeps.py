@@ -23,7 +23,7 @@ from cohflash_jax.reconstruct import ReconstructOptions, build_plan, reconstruct
 from cohflash_jax.status import Status
 
 from .closed_forms import closed_form_noise_and_amplitude, crlb_phase_locked_m
-from .conftest import depth_scene
+from .conftest import depth_scene, needs_two_cpu_streams
 
 N = 35
 STEP_HZ = 6e9 / N  # the 10 Hz mode's comb: f_m = (m + 1)·Δf, 0.17–6 GHz
@@ -254,16 +254,13 @@ def test_table_fit_flags_dead_nan_and_signal_free_pixels_without_nan(comb):
     assert out["fit_status"][0, 3] == Status.DEAD
 
 
+@needs_two_cpu_streams
 def test_two_cpu_streams_give_the_same_bits(comb, tmp_path):
     """The CLI gives JAX two CPU devices and deals sub-tiles out to them in turn
     (`runtime.use_cpu_streams`, `reconstruct.stream_devices`), so that two programs run at once.
     A process with two devices must reconstruct the same frames to the same bits as this one."""
     if jax.default_backend() != "cpu":
         pytest.skip("two CPU streams are the CPU's: on a GPU the sub-tiles go to the GPU")
-    from cohflash_jax.runtime import several_cpu_streams_run
-
-    if not several_cpu_streams_run():
-        pytest.skip("this jaxlib hangs with two CPU devices: its processes get one")
     import subprocess
     import sys
 
