@@ -270,10 +270,63 @@ def test_stream_reconstructs_a_sequence_in_one_process_and_goes_on_past_a_bad_ca
         with h5py.File(out_dir / f"c{k}.depth.h5") as f:
             assert f["depth_m"].shape == (4, 4) and f["valid"][()].mean() > 0.9
             assert np.median(f["depth_m"][()]) == pytest.approx(0.3, abs=0.01)
+            # each depth file records its own capture, hashed whole (the records are made ahead)
+            record = json.loads(f.attrs["provenance"])["inputs"]["capture"]
+        assert record["path"] == str(captures[k].resolve())
+        assert record["sha256"] == hashlib.sha256(captures[k].read_bytes()).hexdigest()
     assert not (out_dir / "bad.depth.h5").exists()
     # two captures of one name would overwrite each other: refused before any work
     assert main(["stream", str(captures[0]), str(captures[0]), "--out-dir", str(tmp_path / "again")]) == 2
     assert "would both write" in capsys.readouterr().err
+
+
+def test_a_streams_records_are_made_ahead_at_idle_priority_or_by_the_caller(tmp_path, monkeypatch):
+    """`cohflash stream` hashes its captures ahead in a thread that runs only where a core
+    would idle (Linux's SCHED_IDLE); a record that thread has not made in time (a busy
+    machine starves it) is made by the caller, and without the priority there is no thread."""
+    import threading
+
+    from cohflash_jax.cli import stream
+    from cohflash_jax.cli.common import file_record
+
+    paths = []
+    for k in range(4):
+        paths.append(tmp_path / f"f{k}.bin")
+        paths[-1].write_bytes(bytes([k]) * (1000 + k))
+    if not hasattr(os, "SCHED_IDLE"):
+        pytest.skip("no SCHED_IDLE here")
+    makers = []
+
+    def logged_record(path):
+        makers.append(threading.current_thread().name)
+        return file_record(path)
+
+    monkeypatch.setattr(stream, "file_record", logged_record)
+    records = stream.RecordsAhead(paths)
+    try:
+        assert records.pool.submit(os.sched_getscheduler, 0).result() == os.SCHED_IDLE
+        made = [records.record(k)() for k in range(4)]
+    finally:
+        records.close()
+    assert made == [file_record(p) for p in paths]
+    assert all(name.startswith("records-ahead") for name in makers)
+
+    # a thread that never gets to run: each record is made by the caller after the grace
+    stalled, makers[:] = threading.Event(), []
+    monkeypatch.setattr(stream, "lowest_cpu_priority", lambda: stalled.wait(30))
+    records = stream.RecordsAhead(paths)
+    try:
+        made = [records.record(k)() for k in range(4)]
+    finally:
+        stalled.set()
+        records.close()
+    assert made == [file_record(p) for p in paths]
+    assert makers[:4] == [threading.current_thread().name] * 4
+
+    monkeypatch.delattr(os, "SCHED_IDLE")
+    records = stream.RecordsAhead(paths)
+    assert records.pool is None and records.record(0) is None
+    records.close()
 
 
 def test_the_cohflash_process_ends_with_its_status_and_complete_outputs(tmp_path):

@@ -205,16 +205,18 @@ def store_record(path: Path) -> dict:
     return {"path": str(path.resolve()), "size_bytes": size, "mtime": mtime, "sha256_metadata": digest.hexdigest()}
 
 
-def provenance(path: Path, options, applied: dict | None = None) -> dict:
+def provenance(path: Path, options, applied: dict | None = None, capture_record=None) -> dict:
     """What a result file records of its inputs and how it was made: the capture (`path`) and
-    every other file `applied` ({role: path}; None skipped), each as a `file_record`."""
+    every other file `applied` ({role: path}; None skipped), each as a `file_record`.
+    `capture_record`: a callable giving the capture's record where it is made elsewhere
+    (`cohflash stream` makes them ahead)."""
     import dataclasses
 
     import jax
 
     from .. import __version__
 
-    capture = file_record(path)
+    capture = file_record(path) if capture_record is None else capture_record()
     files = {role: file_record(p) for role, p in (applied or {}).items() if p is not None}
     # the device too: CPU and GPU results agree to ~1e-6 mm, not bit for bit
     return {

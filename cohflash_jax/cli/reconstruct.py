@@ -110,10 +110,13 @@ def run_reconstruct(
     registration=None,
     scheduler=None,
     workers=None,
+    capture_record=None,
 ):
     """Reconstruct a capture file and write depth.h5 and the exports asked for → the
     `reconstruct.Reconstruction`. The capture is opened once. `scheduler`: run on Dask
-    (`scaleout.dask_client`) with `workers` local workers; the depths are the same."""
+    (`scaleout.dask_client`) with `workers` local workers; the depths are the same.
+    `capture_record`: a callable giving the capture's `file_record`, where it is made
+    elsewhere (`provenance`)."""
     from ..capture import Capture
     from ..reconstruct import open_and_reconstruct
     from ..results import save_depth_tiff, save_ply, save_preview_png, write_depth
@@ -123,7 +126,7 @@ def run_reconstruct(
     # the inputs' record (each file up to 64 MB hashed whole) is made while the reconstruction
     # computes: hashing and reading release the GIL (docs/performance.md)
     with concurrent.futures.ThreadPoolExecutor(1) as pool:
-        record = pool.submit(provenance, capture_path, options, applied)
+        record = pool.submit(provenance, capture_path, options, applied, capture_record)
         if scheduler is not None:
             from ..dask_cluster import dask_client
             from ..reconstruct.dask_bands import reconstruct_on_dask

@@ -3,12 +3,14 @@ a depth file per capture, the time of each map and the rate in maps/s."""
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
+import os
 import sys
 import time
 from pathlib import Path
 
-from .common import HelpFormatter, add_quiet
+from .common import HelpFormatter, add_quiet, file_record
 from .reconstruct import add_reconstruction_options, options_from_args, run_reconstruct
 
 
@@ -43,6 +45,64 @@ def output_paths(captures, out_dir) -> list[Path]:
     return outs
 
 
+def lowest_cpu_priority() -> bool:
+    """Run the calling thread only on a core nothing else in the machine wants (Linux's
+    SCHED_IDLE) → whether it now does. No unprivileged thread can take its priority back."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):
+        return False
+    return True
+
+
+class RecordsAhead:
+    """The depth files' records of a stream's captures (`file_record`), made `AHEAD` captures
+    ahead by one thread at the lowest CPU priority (`lowest_cpu_priority`). A 10 Hz capture's
+    SHA-256 is ~16 ms of CPU, a fifth of a streamed map's; beside the reconstruction it took
+    the cores from the inversions, ahead it runs where a core would wait (the depth file's
+    write, the next capture's open and read). A record the thread has not made within
+    `GRACE_S` of being asked for (a busy machine starves that thread) is made by the caller
+    at its own priority. Where the priority cannot be lowered there is no thread: `record`
+    gives None and each record is made as `cohflash reconstruct` makes it."""
+
+    AHEAD = 2
+    GRACE_S = 0.02
+
+    def __init__(self, paths):
+        self.paths = [Path(p) for p in paths]
+        self.futures = {}
+        self.pool = None
+        if hasattr(os, "SCHED_IDLE") and hasattr(os, "sched_setscheduler"):
+            self.pool = concurrent.futures.ThreadPoolExecutor(
+                1, thread_name_prefix="records-ahead", initializer=lowest_cpu_priority
+            )
+            for k in range(min(self.AHEAD, len(self.paths))):
+                self.futures[k] = self.pool.submit(file_record, self.paths[k])
+
+    def record(self, k: int):
+        """A callable giving capture k's record (`provenance`'s `capture_record`), or None;
+        capture k + `AHEAD`'s is started."""
+        if self.pool is None:
+            return None
+        ahead = k + self.AHEAD
+        if ahead < len(self.paths) and ahead not in self.futures:
+            self.futures[ahead] = self.pool.submit(file_record, self.paths[ahead])
+        future, path = self.futures.pop(k), self.paths[k]
+
+        def made() -> dict:
+            try:
+                return future.result(timeout=self.GRACE_S)
+            except concurrent.futures.TimeoutError:
+                future.cancel()
+                return file_record(path)
+
+        return made
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=False, cancel_futures=True)
+
+
 def run(args) -> int:
     out_dir = Path(args.out_dir)
     outs = output_paths(args.captures, out_dir)
@@ -50,18 +110,25 @@ def run(args) -> int:
     options = dataclasses.replace(options_from_args(args), progress=False)
     seconds, failed = [], 0
     start = time.perf_counter()
-    for capture, out in zip(args.captures, outs):
-        t0 = time.perf_counter()
-        try:
-            result = run_reconstruct(capture, out, options, args.calibration, registration=args.registration)
-        except (ValueError, OSError) as exc:
-            failed += 1
-            print(f"{capture}: error: {exc}", file=sys.stderr)
-            continue
-        seconds.append(time.perf_counter() - t0)
-        valid = result.outputs["valid"]
-        if not args.quiet:
-            print(f"{out}: {valid.mean():.1%} valid, {1e3 * seconds[-1]:.1f} ms", flush=True)
+    records = RecordsAhead(args.captures)
+    try:
+        for k, (capture, out) in enumerate(zip(args.captures, outs)):
+            t0 = time.perf_counter()
+            record = records.record(k)
+            try:
+                result = run_reconstruct(
+                    capture, out, options, args.calibration, registration=args.registration, capture_record=record
+                )
+            except (ValueError, OSError) as exc:
+                failed += 1
+                print(f"{capture}: error: {exc}", file=sys.stderr)
+                continue
+            seconds.append(time.perf_counter() - t0)
+            valid = result.outputs["valid"]
+            if not args.quiet:
+                print(f"{out}: {valid.mean():.1%} valid, {1e3 * seconds[-1]:.1f} ms", flush=True)
+    finally:
+        records.close()
     total = time.perf_counter() - start
     if seconds:
         line = f"{len(seconds)} maps in {total:.2f} s: {len(seconds) / total:.1f} maps/s"
