@@ -303,13 +303,19 @@ def test_a_streams_records_are_made_ahead_at_idle_priority_or_by_the_caller(tmp_
 
     monkeypatch.setattr(stream, "file_record", logged_record)
     records = stream.RecordsAhead(paths)
+    made = []
     try:
-        assert records.pool.submit(os.sched_getscheduler, 0).result() == os.SCHED_IDLE
-        made = [records.record(k)() for k in range(4)]
+        assert records.pool.submit(os.sched_getscheduler, 0).result(timeout=60) == os.SCHED_IDLE
+        for k in range(4):
+            records.futures[k].result(timeout=60)  # made ahead (the other tests' workers may keep it waiting)
+            if k == 3:  # a file changed after its record was made: recorded as it is now
+                paths[3].write_bytes(b"changed")
+                os.utime(paths[3], (1e9, 1e9))
+            made.append(records.record(k)())
     finally:
         records.close()
-    assert made == [file_record(p) for p in paths]
-    assert all(name.startswith("records-ahead") for name in makers)
+    assert made == [file_record(p) for p in paths] and made[3]["size_bytes"] == 7
+    assert [name.startswith("records-ahead") for name in makers] == [True] * 4 + [False]
 
     # a thread that never gets to run: each record is made by the caller after the grace
     stalled, makers[:] = threading.Event(), []

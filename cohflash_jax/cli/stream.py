@@ -55,15 +55,25 @@ def lowest_cpu_priority() -> bool:
     return True
 
 
+def still_current(record: dict, path: Path) -> bool:
+    """Whether a file's record (`file_record`) was made of the file as it is now: its size and
+    modification time unchanged (a store's record is made afresh)."""
+    if path.is_dir():
+        return False
+    st = path.stat()
+    return st.st_size == record["size_bytes"] and st.st_mtime == record["mtime"]
+
+
 class RecordsAhead:
     """The depth files' records of a stream's captures (`file_record`), made `AHEAD` captures
     ahead by one thread at the lowest CPU priority (`lowest_cpu_priority`). A 10 Hz capture's
     SHA-256 is ~16 ms of CPU, a fifth of a streamed map's; beside the reconstruction it took
     the cores from the inversions, ahead it runs where a core would wait (the depth file's
     write, the next capture's open and read). A record the thread has not made within
-    `GRACE_S` of being asked for (a busy machine starves that thread) is made by the caller
-    at its own priority. Where the priority cannot be lowered there is no thread: `record`
-    gives None and each record is made as `cohflash reconstruct` makes it."""
+    `GRACE_S` of being asked for (a busy machine starves that thread), or made of a file that
+    has changed since (`still_current`), is made by the caller at its own priority. Where the
+    priority cannot be lowered there is no thread: `record` gives None and each record is
+    made as `cohflash reconstruct` makes it."""
 
     AHEAD = 2
     GRACE_S = 0.02
@@ -91,10 +101,11 @@ class RecordsAhead:
 
         def made() -> dict:
             try:
-                return future.result(timeout=self.GRACE_S)
+                record = future.result(timeout=self.GRACE_S)
             except concurrent.futures.TimeoutError:
                 future.cancel()
                 return file_record(path)
+            return record if still_current(record, path) else file_record(path)
 
         return made
 
