@@ -108,10 +108,10 @@ def child_ten_hz() -> dict:
     from cohflash_jax.scenes import planar
 
     res = {}
+    scene_of_target = planar(effects=("shot_noise", "read_noise", "quantization", "sidebands"))
     for scene, power in TEN_HZ_SCENES.items():
         inst = cf.Instrument.ten_hz_mode(link=LinkBudget(probe_power_w=power * PAPER_PROBE_POWER_W))
-        effects = ("shot_noise", "read_noise", "quantization", "sidebands")
-        frames = np.asarray(cf.simulate(planar(effects=effects), inst, 256, 320, jax.random.key(0)))
+        frames = np.asarray(cf.simulate(scene_of_target, inst, 256, 320, jax.random.key(0)))
         for method in ("dft", "ml"):
             options = ReconstructOptions(method=method, progress=False)
             run = lambda options=options, frames=frames, inst=inst: reconstruct_array(frames, inst, options)

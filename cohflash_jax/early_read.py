@@ -149,9 +149,10 @@ def encode_report(report: dict) -> bytes:
     return REPORT_HEADER.pack(len(header)) + header + (b"" if index is None else index.tobytes())
 
 
-def file_identity(fd: int) -> list[int]:
-    """What tells a file apart and changes when it is written: device, inode, size, times."""
-    st = os.fstat(fd)
+def file_identity(file: int | str | os.PathLike) -> list[int]:
+    """What tells a file (an open descriptor or a path) apart and changes when it is written:
+    device, inode, size, times."""
+    st = os.stat(file)
     return [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns]
 
 

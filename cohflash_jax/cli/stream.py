@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+from ..early_read import file_identity
 from .common import HelpFormatter, add_quiet, file_record
 from .reconstruct import add_reconstruction_options, options_from_args, run_reconstruct
 
@@ -45,23 +46,19 @@ def output_paths(captures, out_dir) -> list[Path]:
     return outs
 
 
-def lowest_cpu_priority() -> bool:
+def lowest_cpu_priority() -> None:
     """Run the calling thread only on a core nothing else in the machine wants (Linux's
-    SCHED_IDLE) → whether it now does. No unprivileged thread can take its priority back."""
+    SCHED_IDLE). No unprivileged thread can take its priority back."""
     try:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    except (AttributeError, OSError):
-        return False
-    return True
+    except OSError:
+        pass
 
 
-def still_current(record: dict, path: Path) -> bool:
-    """Whether a file's record (`file_record`) was made of the file as it is now: its size and
-    modification time unchanged (a store's record is made afresh)."""
-    if path.is_dir():
-        return False
-    st = path.stat()
-    return st.st_size == record["size_bytes"] and st.st_mtime == record["mtime"]
+def identified_record(path: Path) -> tuple[list[int], dict]:
+    """(`early_read.file_identity`, `file_record`) of a file, its identity taken first: a file
+    written while it is hashed has another identity after."""
+    return file_identity(path), file_record(path)
 
 
 class RecordsAhead:
@@ -70,10 +67,10 @@ class RecordsAhead:
     SHA-256 is ~16 ms of CPU, a fifth of a streamed map's; beside the reconstruction it took
     the cores from the inversions, ahead it runs where a core would wait (the depth file's
     write, the next capture's open and read). A record the thread has not made within
-    `GRACE_S` of being asked for (a busy machine starves that thread), or made of a file that
-    has changed since (`still_current`), is made by the caller at its own priority. Where the
-    priority cannot be lowered there is no thread: `record` gives None and each record is
-    made as `cohflash reconstruct` makes it."""
+    `GRACE_S` of being asked for (a busy machine starves that thread), of a file that has
+    changed since (its `early_read.file_identity`), or of a store (a folder), is made by the
+    caller at its own priority. Where the priority cannot be lowered there is no thread:
+    `record` gives None and each record is made as `cohflash reconstruct` makes it."""
 
     AHEAD = 2
     GRACE_S = 0.02
@@ -87,25 +84,28 @@ class RecordsAhead:
                 1, thread_name_prefix="records-ahead", initializer=lowest_cpu_priority
             )
             for k in range(min(self.AHEAD, len(self.paths))):
-                self.futures[k] = self.pool.submit(file_record, self.paths[k])
+                self.start(k)
+
+    def start(self, k: int) -> None:
+        """Capture k's record made ahead, after those asked for before it."""
+        self.futures[k] = self.pool.submit(identified_record, self.paths[k])
 
     def record(self, k: int):
         """A callable giving capture k's record (`provenance`'s `capture_record`), or None;
         capture k + `AHEAD`'s is started."""
         if self.pool is None:
             return None
-        ahead = k + self.AHEAD
-        if ahead < len(self.paths) and ahead not in self.futures:
-            self.futures[ahead] = self.pool.submit(file_record, self.paths[ahead])
+        if k + self.AHEAD < len(self.paths):
+            self.start(k + self.AHEAD)
         future, path = self.futures.pop(k), self.paths[k]
 
         def made() -> dict:
             try:
-                record = future.result(timeout=self.GRACE_S)
+                identity, record = future.result(timeout=self.GRACE_S)
             except concurrent.futures.TimeoutError:
                 future.cancel()
                 return file_record(path)
-            return record if still_current(record, path) else file_record(path)
+            return record if not path.is_dir() and file_identity(path) == identity else file_record(path)
 
         return made
 
