@@ -171,7 +171,7 @@ def phase_locked_sigma_m(sum_angular_frequency_sq, tone_amplitude, noise_var):
     """Phase-locked depth CRLB (m) from Σ(2π f_m)² (rad²/s²), the tone's amplitude a and the
     noise variance σ² (NumPy or JAX): c/2 · σ/√(a²/2·Σ(2π f_m)²). Valid when amplitude and
     offset decouple from τ (many cycles over the sweep)."""
-    return C / 2 / (0.5 * tone_amplitude**2 * sum_angular_frequency_sq / noise_var) ** 0.5
+    return C / 2 / jnp.sqrt(0.5 * tone_amplitude**2 * sum_angular_frequency_sq / noise_var)
 
 
 def crlb_at_unit_snr_m(frequencies_hz, order: int = 1) -> float:

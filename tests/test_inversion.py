@@ -474,6 +474,31 @@ def test_polish_converges_in_few_newton_steps_and_never_reports_a_maximum_as_con
     assert abs(float(value) - np.pi) < 1e-6 and bool(ok & descended(jnp.cos(value), np.cos(2.5)))
 
 
+def test_newton_polish_with_unrolled_steps_takes_the_same_steps():
+    """`newton_polish`'s `unrolled_steps` write its first steps out before the loop: each
+    start, batched under `vmap`, ends at the same bits, steps and flags with none, some or more
+    unrolled than it needs, a start that climbs to the maximum and one that hits the step
+    limit included."""
+    from cohflash_jax.estimate.polish import newton_polish
+
+    slope_and_curvature = lambda x: (-jnp.sin(x), -jnp.cos(x))  # of cos: minimum at π, maximum at 0
+    starts = jnp.asarray([0.3, 2.5, 3.0, np.pi, 4.4, 1.55, np.nan])
+
+    def run(unrolled, max_steps=16):
+        polish = lambda x: newton_polish(
+            slope_and_curvature, x, max_steps=max_steps, tolerance_mm=1e-9, unrolled_steps=unrolled
+        )
+        return jax.tree.map(np.asarray, jax.jit(jax.vmap(polish))(starts))
+
+    for max_steps in (16, 2):
+        plain = run(0, max_steps)
+        assert plain.at_step_limit.any() if max_steps == 2 else plain.succeeded[:-1].all()
+        for unrolled in (1, 3, 20):
+            other = run(unrolled, max_steps)
+            for name in ("value", "succeeded", "num_steps", "at_step_limit"):
+                np.testing.assert_array_equal(getattr(other, name), getattr(plain, name), err_msg=name)
+
+
 @pytest.mark.runs_long
 def test_straggler_pass_gives_each_pixel_its_uninterrupted_polish():
     """The polish runs every pixel for a few Newton steps, then resumes the stragglers a few at
