@@ -213,13 +213,13 @@ def refine_ml_table(
     basin's scores are float32, the polish's projections y·R_j `projection_dtype` (float32:
     products of the float32 rows, the table's own precision, summed over the N frames in
     float32); |y|², the polynomials, the polish and the fit are float64, and with float32
-    projections the residual cost is the residual's own sum of squares where the polynomials'
-    would not resolve it (`RESIDUAL_COST_SHARE`). Against float64
-    projections, float32 ones leave the flags as they are and move a depth by ≤ 1e-6 of σ at
-    ~15 dB a frame and ~1e-4 at 55 dB (the brightest target over the quantisation noise), 1e-3
-    in the last 0.1 mm before the window's mirror-symmetric edge, where the cost is flat; σ and
-    the reduced χ² by < 1e-4 (`tests/test_short_sweeps.py`), for a fit that costs about a
-    third less."""
+    projections the residual cost is the residual's own sum of squares where the polynomials
+    would not resolve it (`RESIDUAL_COST_SHARE`). Against float64 projections, float32 ones
+    move a depth by ≤ 1e-6 of σ at ~15 dB a frame and ~1e-4 at 55 dB (the brightest target
+    over the quantisation noise), 1e-3 in the last 0.1 mm before the window's
+    mirror-symmetric edge, where the cost is flat; σ by < 1e-4 and the reduced χ² by < 1e-3;
+    the flags not at all, in those tests (`tests/test_short_sweeps.py`) and on dense 10 Hz
+    captures. The fit then costs about a third less."""
     n = r.shape[0]
     # the mean as a sum of rows in frame order (a loop): a pixel's fit is then the same bits
     # whatever its batch (XLA's CPU float32 reductions, fused, sum in an order that depends on
