@@ -42,6 +42,22 @@ def _tone(f, weights, depths_m, system_delay_s=0.0):
     return sum(2 * weights[n] * np.cos(2 * np.pi * n * f[None, :] * tau) for n in range(1, len(weights)))
 
 
+def _table_fit(plan, r, coarse_depth_m, noise_var, projection_dtype):
+    """The plan's table fit (`refine_ml_table`) of r (N, P) about the coarse depths, its
+    projections in `projection_dtype`."""
+    est = plan.estimator
+    return tt.refine_ml_table(
+        est.table,
+        plan.model,
+        r,
+        coarse_depth_m,
+        noise_var,
+        half_width_m=est.half_width_m,
+        max_steps=est.max_steps,
+        projection_dtype=projection_dtype,
+    )
+
+
 def test_tone_table_holds_the_tone_and_its_derivatives(comb):
     inst, plan = comb
     table = plan.estimator.table
@@ -122,16 +138,7 @@ def test_table_fit_matches_the_time_domain_ml_fit(comb):
     # each fit one program for both noise levels, not op by op (~250 small compiles otherwise)
     @jax.jit
     def fits(r, coarse, noise_var):
-        table_fit = tt.refine_ml_table(
-            est.table,
-            plan.model,
-            r.T,
-            coarse,
-            noise_var,
-            half_width_m=est.half_width_m,
-            max_steps=est.max_steps,
-            projection_dtype=jnp.float64,  # the fit itself; float32 projections: the next test
-        )
+        table_fit = _table_fit(plan, r.T, coarse, noise_var, jnp.float64)  # float32 projections: the next test
         direct = jax.vmap(
             lambda rr, d, v: refine_time_domain(
                 rr,
@@ -186,7 +193,7 @@ def test_float32_projections_agree_with_float64_ones(comb):
     from cohflash_jax.estimate.base import reduced_chi2
 
     inst, plan = comb
-    est, geometry = plan.estimator, plan.geometry
+    geometry = plan.geometry
     f = np.asarray(inst.sweep.frequencies_hz)
     rng = np.random.default_rng(11)
     hi = geometry.depth_window_m[1]
@@ -196,16 +203,7 @@ def test_float32_projections_agree_with_float64_ones(comb):
 
     @jax.jit
     def fits(r, noise_var):
-        fit = lambda dtype: tt.refine_ml_table(
-            est.table,
-            plan.model,
-            r,
-            coarse,
-            noise_var,
-            half_width_m=est.half_width_m,
-            max_steps=est.max_steps,
-            projection_dtype=dtype,
-        )
+        fit = lambda dtype: _table_fit(plan, r, coarse, noise_var, dtype)
         mean_square = jnp.mean(jnp.square(r.astype(jnp.float64)), axis=0)
         chi2 = lambda fit: reduced_chi2(fit.cost, noise_var, mean_square, N - 3)
         single, double = fit(jnp.float32), fit(jnp.float64)
