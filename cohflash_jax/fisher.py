@@ -169,8 +169,9 @@ def iq_noise_and_tone_amplitude(
 
 def phase_locked_sigma_m(sum_angular_frequency_sq, tone_amplitude, noise_var):
     """Phase-locked depth CRLB (m) from Σ(2π f_m)² (rad²/s²), the tone's amplitude a and the
-    noise variance σ² (NumPy or JAX): c/2 · σ/√(a²/2·Σ(2π f_m)²). Valid when amplitude and
-    offset decouple from τ (many cycles over the sweep)."""
+    noise variance σ² (NumPy or JAX arguments, a JAX result: `jnp.sqrt`, where `** 0.5` would
+    compile to a `pow` call): c/2 · σ/√(a²/2·Σ(2π f_m)²). Valid when amplitude and offset
+    decouple from τ (many cycles over the sweep)."""
     return C / 2 / jnp.sqrt(0.5 * tone_amplitude**2 * sum_angular_frequency_sq / noise_var)
 
 
