@@ -62,7 +62,10 @@ def test_energy_bounds_hold_for_every_carrier_phase():
     # uniform: two adjacent bins k, k+1 of the real sequence's unitary rFFT
     for phi in phases[:8]:
         r = np.real(np.exp(-1j * phi) * z)
-        sums = np.asarray(uniform_sums(np.fft.rfft(r, axis=1) / math.sqrt(n), n))
+        spectrum = np.fft.rfft(r, axis=1) / math.sqrt(n)
+        sums = np.asarray(uniform_sums(spectrum, n))
+        # the same sums with the bins on the first axis (the 10 Hz programs' layout)
+        np.testing.assert_array_equal(np.asarray(uniform_sums(spectrum.T, n, axis=0)).T, sums)
         for k in range(1, n // 2 - 1):
             bound = bins[:, [k, k + 1, n - k, n - k - 1]].sum(axis=1)
             assert np.all(sums[:, k] <= bound * (1 + 1e-9))

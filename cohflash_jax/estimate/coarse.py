@@ -202,7 +202,10 @@ class UniformSpectrum(AbstractCoarseStage):
         return cls(geometry, device_value(weights), detection, min_bin)
 
     def detection_energy(self, coarse):
-        return uniform_sums(coarse.spectrum, self.geometry.num_frames)
+        n = self.geometry.num_frames
+        if n <= DFT_MATRIX_MAX_FRAMES:  # the spectrum's bins came first (`__call__`): summed there
+            return uniform_sums(coarse.spectrum.T, n, axis=0).T
+        return uniform_sums(coarse.spectrum, n)
 
     def __call__(self, sequence) -> CoarseSpectrum:
         n = sequence.shape[0]

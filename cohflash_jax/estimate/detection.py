@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Complex, Float
@@ -126,14 +127,16 @@ class Detection(eqx.Module):
 DETECTION_WINDOW_BINS = 2  # adjacent DFT bins whose energy a uniform sweep's test sums
 
 
-def uniform_sums(spectrum: Complex[Array, "P K"], num_frames: int) -> Float[Array, "P K"]:
+def uniform_sums(spectrum: Complex[Array, "P K"], num_frames: int, axis: int = -1) -> Float[Array, "P K"]:
     """Σ 2|R_j|² over the DFT bins j = k..k+1 of each window k, leaving out the DC bin and
-    (even N) the real Nyquist bin, whose bound differs."""
+    (even N) the real Nyquist bin, whose bound differs; bins along `axis`."""
     p2 = 2 * (jnp.real(spectrum) ** 2 + jnp.imag(spectrum) ** 2)
-    k = spectrum.shape[-1]
-    p2 = jnp.where(jnp.asarray(uniform_bins(num_frames)[:k]), p2, 0.0)
-    pad = jnp.pad(p2, [(0, 0)] * (p2.ndim - 1) + [(0, DETECTION_WINDOW_BINS - 1)])
-    return sum(pad[..., j : j + k] for j in range(DETECTION_WINDOW_BINS))
+    axis = axis % p2.ndim
+    k = spectrum.shape[axis]
+    keep = jnp.asarray(uniform_bins(num_frames)[:k]).reshape((k,) + (1,) * (p2.ndim - 1 - axis))
+    p2 = jnp.where(keep, p2, 0.0)
+    pad = jnp.pad(p2, [(0, DETECTION_WINDOW_BINS - 1) if d == axis else (0, 0) for d in range(p2.ndim)])
+    return sum(jax.lax.slice_in_dim(pad, j, j + k, axis=axis) for j in range(DETECTION_WINDOW_BINS))
 
 
 def uniform_bins(num_frames: int) -> np.ndarray:
