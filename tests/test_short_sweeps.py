@@ -380,6 +380,25 @@ def test_short_sweep_spectrum_from_the_dft_matrix_matches_numpy(num_frames):
     np.testing.assert_allclose(np.asarray(out.spectrum), spec, atol=2e-6 * np.abs(spec).max())
     assert np.all(np.abs(np.asarray(out.power) - power) <= 2e-6 * scale)  # each pixel to its peak's power
     np.testing.assert_array_equal(np.asarray(out.peak), 1 + np.argmax(power[:, 1:], axis=1))
+    # the readouts, taken where the bins come first (`UniformSpectrum.power_as_computed`), are
+    # those of the pixels-first arrays the stage returns, to the bit
+    from cohflash_jax.estimate.coarse import interpolate_peak
+    from cohflash_jax.estimate.detection import uniform_sums
+
+    def both(stage, out):
+        readouts = stage.depth(out, True), stage.tone_amplitude(out), stage.dc_edge(out), stage.detection_energy(out)
+        power, peak, n = out.power, out.peak, num_frames
+        pixels_first = (
+            stage.geometry.depth_from_folded(interpolate_peak(power, peak).astype(jnp.float64) / n),
+            2 * jnp.sqrt(power[jnp.arange(p), peak]).astype(jnp.float64) / (math.sqrt(n) * stage.dominant_weight),
+            (peak == stage.min_bin) & (power[:, stage.min_bin - 1] > power[:, stage.min_bin]),
+            uniform_sums(out.spectrum, n),
+        )
+        return readouts, pixels_first
+
+    readouts, pixels_first = eqx.filter_jit(both)(stage, out)
+    for got, want in zip(readouts, pixels_first):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
 
 
 def test_a_full_frame_sub_tile_fits_only_its_detected_pixels_where_they_are_few():

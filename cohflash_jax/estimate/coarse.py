@@ -89,18 +89,23 @@ def coarse_peak(power: Float[Array, "P K"], min_bin: int = 1, axis: int = -1) ->
     return first_argmax(searched, axis=axis) + min_bin
 
 
-def interpolate_peak(power: Float[Array, "P K"], peak: Int[Array, " P"]) -> Float[Array, " P"]:
+def interpolate_peak(power: Float[Array, "P K"], peak: Int[Array, " P"], axis: int = -1) -> Float[Array, " P"]:
     """Sub-bin peak position by a parabola through the log power of the peak and its
-    neighbours (Gaussian interpolation; bias < 2 % of a bin for a Hann window)."""
+    neighbours (Gaussian interpolation; bias < 2 % of a bin for a Hann window); bins along `axis`."""
     tiny = jnp.finfo(power.dtype).tiny
-    return peak + parabolic_offset(power, peak, lambda v: jnp.log(jnp.maximum(v, tiny)))
+    return peak + parabolic_offset(power, peak, lambda v: jnp.log(jnp.maximum(v, tiny)), axis)
 
 
-def parabolic_offset(power: Float[Array, "P K"], peak: Int[Array, " P"], transform=lambda v: v):
+def at_grid_point(power: Float[Array, "P K"], index: Int[Array, " P"], axis: int = -1) -> Float[Array, " P"]:
+    """Each pixel's `power` at its grid point `index` (bins along `axis`, the pixels the other)."""
+    return jnp.squeeze(jnp.take_along_axis(power, jnp.expand_dims(index, axis), axis=axis), axis)
+
+
+def parabolic_offset(power: Float[Array, "P K"], peak: Int[Array, " P"], transform=lambda v: v, axis: int = -1):
     """Sub-grid offset in [−½, ½] of a peak by a parabola through `transform`(power) at the peak
     and its neighbours; 0 where the peak is on an edge or the parabola does not open downwards."""
-    k = power.shape[-1]
-    take = lambda idx: transform(jnp.take_along_axis(power, jnp.clip(idx, 0, k - 1)[:, None], axis=-1)[:, 0])
+    k = power.shape[axis]
+    take = lambda idx: transform(at_grid_point(power, jnp.clip(idx, 0, k - 1), axis))
     a, b, c = take(peak - 1), take(peak), take(peak + 1)
     den = a - 2 * b + c
     interior = (den < 0) & (peak > 0) & (peak < k - 1)
@@ -203,7 +208,7 @@ class UniformSpectrum(AbstractCoarseStage):
 
     def detection_energy(self, coarse):
         n = self.geometry.num_frames
-        if n <= DFT_MATRIX_MAX_FRAMES:  # the spectrum's bins came first (`__call__`): summed there
+        if n <= DFT_MATRIX_MAX_FRAMES:  # the spectrum's bins came first (`power_as_computed`)
             return uniform_sums(coarse.spectrum.T, n, axis=0).T
         return uniform_sums(coarse.spectrum, n)
 
@@ -222,14 +227,25 @@ class UniformSpectrum(AbstractCoarseStage):
         power = hann_power(spec, n, axis=0)
         return CoarseSpectrum(power.T, coarse_peak(power, self.min_bin, axis=0), spec.T)
 
+    def power_as_computed(self, coarse) -> tuple[Float[Array, "..."], int]:
+        """The power and its bins' axis as `__call__` computed it: bins first for short sweeps
+        (the DFT matrix's), where read so XLA need not transpose it back."""
+        if self.geometry.num_frames <= DFT_MATRIX_MAX_FRAMES:
+            return coarse.power.T, 0
+        return coarse.power, -1
+
     def depth(self, coarse, interpolate):
         n = self.geometry.num_frames
-        frac = interpolate_peak(coarse.power, coarse.peak) if interpolate else coarse.peak
+        frac = interpolate_peak(*self._power_with_peak(coarse)) if interpolate else coarse.peak
         return self.geometry.depth_from_folded(frac.astype(jnp.float64) / n)
+
+    def _power_with_peak(self, coarse):
+        power, axis = self.power_as_computed(coarse)
+        return power, coarse.peak, axis
 
     def tone_amplitude(self, coarse):
         # |H| = a·w·√N/4 at the Hann peak for a tone a·2w·cos (Hann gain ½)
-        peak_power = jnp.take_along_axis(coarse.power, coarse.peak[:, None], axis=-1)[:, 0]
+        peak_power = at_grid_point(*self._power_with_peak(coarse))
         return (
             2 * jnp.sqrt(peak_power).astype(jnp.float64) / (math.sqrt(self.geometry.num_frames) * self.dominant_weight)
         )
@@ -253,8 +269,9 @@ class UniformSpectrum(AbstractCoarseStage):
         spectrum rising towards DC. Slow drift looks exactly so (at 35 frames a quadratic drift
         and no echo gave 16 of 64 pixels "valid" at one bin, χ² < 5, all with this signature),
         and so does an untracked turbulent carrier, whose mean term wanders."""
-        power = coarse.power
-        return (coarse.peak == self.min_bin) & (power[:, self.min_bin - 1] > power[:, self.min_bin])
+        power, axis = self.power_as_computed(coarse)
+        at = lambda k: jax.lax.index_in_dim(power, k, axis=axis, keepdims=False)
+        return (coarse.peak == self.min_bin) & (at(self.min_bin - 1) > at(self.min_bin))
 
 
 RIVAL_EXCLUSION_POINTS = 2 * POINTS_PER_ENVELOPE  # the main lobe and its first sidelobes
