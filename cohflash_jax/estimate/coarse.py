@@ -208,13 +208,13 @@ class UniformSpectrum(AbstractCoarseStage):
 
     def detection_energy(self, coarse):
         n = self.geometry.num_frames
-        if n <= DFT_MATRIX_MAX_FRAMES:  # the spectrum's bins came first (`power_as_computed`)
+        if self.bins_first:  # summed where the spectrum's bins came first
             return uniform_sums(coarse.spectrum.T, n, axis=0).T
         return uniform_sums(coarse.spectrum, n)
 
     def __call__(self, sequence) -> CoarseSpectrum:
         n = sequence.shape[0]
-        if n > DFT_MATRIX_MAX_FRAMES:
+        if not self.bins_first:
             spec = unitary_rfft(sequence)  # (P, K)
             power = hann_power(spec, n)
             return CoarseSpectrum(power, coarse_peak(power, self.min_bin), spec)
@@ -227,10 +227,16 @@ class UniformSpectrum(AbstractCoarseStage):
         power = hann_power(spec, n, axis=0)
         return CoarseSpectrum(power.T, coarse_peak(power, self.min_bin, axis=0), spec.T)
 
+    @property
+    def bins_first(self) -> bool:
+        """Whether `__call__` computes the spectrum with its bins on the first axis (a DFT-matrix
+        product, `DFT_MATRIX_MAX_FRAMES`), before returning it pixels-first."""
+        return self.geometry.num_frames <= DFT_MATRIX_MAX_FRAMES
+
     def power_as_computed(self, coarse) -> tuple[Float[Array, "..."], int]:
         """The power and its bins' axis as `__call__` computed it: bins first for short sweeps
         (the DFT matrix's), where read so XLA need not transpose it back."""
-        if self.geometry.num_frames <= DFT_MATRIX_MAX_FRAMES:
+        if self.bins_first:
             return coarse.power.T, 0
         return coarse.power, -1
 
@@ -369,7 +375,7 @@ class DelayPeriodogram(AbstractCoarseStage):
         return at_peak + parabolic_offset(coarse.power, coarse.peak) * self.grid_step_m if interpolate else at_peak
 
     def tone_amplitude(self, coarse):
-        peak_power = jnp.take_along_axis(coarse.power, coarse.peak[:, None], axis=-1)[:, 0]
+        peak_power = at_grid_point(coarse.power, coarse.peak)
         return 2 * jnp.sqrt(peak_power) / self.geometry.num_frames / (2 * self.dominant_weight)
 
     def frequency_only_sigma(self, amplitude, noise_var):
