@@ -1,6 +1,6 @@
-"""The package's native kernels, in C (`native_kernels.c`), loaded with ctypes: a long sweep's
-I/Q half (data checks, carrier axis, rotated sequence) in one pass over a sub-tile's frames
-(`iq_half`), and a tile's chunks read from the file in one call (`read_chunks`).
+"""The package's native kernels, in C (`native_kernels.c`), loaded with ctypes: a sub-tile's
+I/Q half (data checks, carrier axis, rotated sequence) in one pass over its frames, read in
+place (`iq_half`), and a tile's chunks read from the file in one call (`read_chunks`).
 
 XLA's CPU code for the same arithmetic (`reconstruct.programs.axis_and_checks` and
 `rotated_from_frames`) materialises I and Q and sums them in separate passes: ~60 MB of
@@ -26,6 +26,9 @@ import numpy as np
 from .tiling import aligned_empty
 
 LIBRARY_STEM = "native_kernels"  # setup.py's extension: cohflash_jax/native_kernels<suffix>
+# the kernels' calling convention this module calls them with (`cohflash_kernel_abi` in the C
+# source): a library built from an older source is not loaded
+KERNEL_ABI = 2
 
 
 class IQHalf(NamedTuple):
@@ -41,7 +44,7 @@ class IQHalf(NamedTuple):
     saturated: np.ndarray
 
 
-KERNEL_ERRORS = {1: "out of memory", 2: "empty frames"}
+KERNEL_ERRORS = {1: "out of memory", 2: "empty frames, or rows that overlap"}
 
 
 def library_path() -> Path | None:
@@ -71,6 +74,8 @@ def library():
         lib = ctypes.CDLL(str(path), use_errno=True)
     except OSError:
         return None
+    if not hasattr(lib, "cohflash_kernel_abi") or lib.cohflash_kernel_abi() != KERNEL_ABI:
+        return None  # built from another version of the source: `make` (pip install -e .) rebuilds it
     pointer = ctypes.c_void_p
     if hasattr(lib, "cohflash_read_chunks"):
         lib.cohflash_read_chunks.restype = ctypes.c_int64
@@ -79,7 +84,7 @@ def library():
         if hasattr(lib, name):
             kernel = getattr(lib, name)
             kernel.restype = ctypes.c_int
-            kernel.argtypes = [pointer, ctypes.c_int64, ctypes.c_int64, pointer, ctypes.c_int64, pointer]
+            kernel.argtypes = [pointer] + [ctypes.c_int64] * 4 + [pointer, ctypes.c_int64, pointer]
             kernel.argtypes += [ctypes.c_double] + [pointer] * 7
     return lib
 
@@ -138,22 +143,44 @@ def read_chunks(fd: int, offsets: np.ndarray, wants: np.ndarray, iovec_addresses
 def description() -> str:
     """The kernel in words, for benchmarks and depth files: built or not, and for which ISA."""
     if library() is None:
-        why = "off (COHFLASH_NATIVE=0)" if turned_off() else "not built"
+        if turned_off():
+            why = "off (COHFLASH_NATIVE=0)"
+        elif library_path() is None:
+            why = "not built"
+        else:
+            why = "built from another version of native_kernels.c (`make` rebuilds it)"
         return f"native I/Q kernel {why}: XLA's I/Q programs run"
     isa = "AVX2" if kernel() is library().cohflash_iq_half_u16_avx2 else "baseline ISA"
     return f"native I/Q kernel ({isa})"
 
 
+def readable_in_place(frames: np.ndarray) -> bool:
+    """Whether the kernel reads `frames` (4, N, P) where they are: each frame row's pixels
+    contiguous, rows and CCD planes at positive strides, no two rows overlapping."""
+    plane, row, pixel = frames.strides
+    size = frames.itemsize
+    _, n, p = frames.shape
+    return pixel == size and row % size == 0 and plane % size == 0 and row >= p * size and plane >= n * row
+
+
 def iq_half(
     frames: np.ndarray, weights: np.ndarray, bias: np.ndarray, saturation_dn, out: np.ndarray | None = None
 ) -> IQHalf:
-    """A sub-tile's I/Q half from its frames (4, N, P) uint16 (C order): `weights` (2, 4), or
-    (2, 4, P) per pixel, and `bias` (2, P) float32 make I and Q = W·x + b; `saturation_dn`
-    (None: none) flags a pixel any of whose values reaches it; `out`: an aligned (N, P) float32
-    buffer for r (default: a new one). Runs with the interpreter lock released (ctypes)."""
-    if frames.dtype != np.uint16 or frames.ndim != 3 or frames.shape[0] != 4 or not frames.flags.c_contiguous:
-        raise ValueError(f"frames must be C-contiguous uint16 (4, N, P), not {frames.dtype} {frames.shape}")
+    """A sub-tile's I/Q half from its frames (4, N, P) uint16, read in place: C-contiguous, or
+    a view whose pixels are contiguous (a sub-tile's columns of a wider tile). `weights`
+    (2, 4), or (2, 4, P) per pixel, and `bias` (2, P) float32 make I and Q = W·x + b;
+    `saturation_dn` (None: none) flags a pixel any of whose values reaches it; `out`: an
+    aligned (N, P) float32 buffer for r (default: a new one). Runs with the interpreter lock
+    released (ctypes)."""
+    if frames.ndim == 3 and 0 in frames.shape[1:]:
+        raise ValueError(f"frames are empty: {frames.shape}")
+    if frames.dtype != np.uint16 or frames.ndim != 3 or frames.shape[0] != 4 or not readable_in_place(frames):
+        raise ValueError(
+            f"frames must be uint16 (4, N, P) with contiguous pixels, not {frames.dtype} {frames.shape} "
+            f"strides {frames.strides}"
+        )
     _, n, p = frames.shape
+    plane_stride, row_stride = (stride // frames.itemsize for stride in frames.strides[:2])
     weights = np.ascontiguousarray(weights, np.float32)
     bias = np.ascontiguousarray(np.broadcast_to(bias, (2, p)), np.float32)
     if weights.shape not in ((2, 4), (2, 4, p)):
@@ -173,6 +200,8 @@ def iq_half(
         frames.ctypes.data,
         n,
         p,
+        row_stride,
+        plane_stride,
         weights.ctypes.data,
         int(weights.ndim == 3),
         bias.ctypes.data,

@@ -1,6 +1,8 @@
-/* A long sweep's I/Q half in one pass over a sub-tile's frames (cohflash_jax/native.py).
+/* A sub-tile's I/Q half in one pass over its frames (cohflash_jax/native.py).
 
-   frames (4, n, p) uint16, C order. For each pixel: each CCD's highest and lowest value, and
+   frames (4, n, p) uint16, pixels contiguous, frame rows `row_stride` and CCD planes
+   `plane_stride` elements apart (a sub-tile cut from a wider tile is read in place). For each
+   pixel: each CCD's highest and lowest value, and
    the second moments of I and Q = W·x + b, summed in float32 over blocks of BLOCK_FRAMES frames
    and in float64 across blocks; from them the carrier axis (cos φ, sin φ), the orthogonal
    variance and the total variance, as reconstruct/programs.py's `axis_and_checks` computes
@@ -37,6 +39,10 @@
 
 enum { KERNEL_OK = 0, KERNEL_NO_MEMORY = 1, KERNEL_BAD_SHAPE = 2 };
 
+/* the kernels' calling convention: cohflash_jax/native.py loads a library built for this one
+   only (a library left from an older build is not called with the wrong arguments) */
+int cohflash_kernel_abi(void) { return 2; }
+
 typedef struct {
     uint16_t *restrict hi, *restrict lo;                       /* (4, p) each CCD's extremes */
     float *restrict part;                                      /* (5, p) float32 partial sums */
@@ -47,8 +53,8 @@ typedef struct {
 
 /* the frames x[u·p + k] (u < frames) into the extremes and partial sums, each pixel's
    accumulators in registers across the frames */
-static inline __attribute__((always_inline)) void accumulate(const uint16_t *restrict x, int64_t plane, int64_t p,
-                                                              int frames, Scratch s)
+static inline __attribute__((always_inline)) void accumulate(const uint16_t *restrict x, int64_t plane, int64_t stride,
+                                                              int64_t p, int frames, Scratch s)
 {
     uint16_t *restrict hi = s.hi, *restrict lo = s.lo;
     float *restrict part = s.part;
@@ -61,8 +67,8 @@ static inline __attribute__((always_inline)) void accumulate(const uint16_t *res
         const float a00 = w[k], a01 = w[p + k], a02 = w[2 * p + k], a03 = w[3 * p + k];
         const float a10 = w[4 * p + k], a11 = w[5 * p + k], a12 = w[6 * p + k], a13 = w[7 * p + k];
         for (int u = 0; u < frames; u++) {
-            const uint16_t x0 = x[u * p + k], x1 = x[plane + u * p + k];
-            const uint16_t x2 = x[2 * plane + u * p + k], x3 = x[3 * plane + u * p + k];
+            const uint16_t x0 = x[u * stride + k], x1 = x[plane + u * stride + k];
+            const uint16_t x2 = x[2 * plane + u * stride + k], x3 = x[3 * plane + u * stride + k];
             h0 = x0 > h0 ? x0 : h0;
             l0 = x0 < l0 ? x0 : l0;
             h1 = x1 > h1 ? x1 : h1;
@@ -87,11 +93,11 @@ static inline __attribute__((always_inline)) void accumulate(const uint16_t *res
 }
 
 static inline __attribute__((always_inline)) void
-iq_half_body(const uint16_t *restrict frames, int64_t n, int64_t p, const float *restrict bias, double saturation,
+iq_half_body(const uint16_t *restrict frames, int64_t n, int64_t p, int64_t stride, int64_t plane,
+             const float *restrict bias, double saturation,
              float *restrict r, float *restrict cos_phase, float *restrict sin_phase, double *restrict noise_var,
              double *restrict total_var, uint8_t *restrict dead, uint8_t *restrict saturated, Scratch s)
 {
-    const int64_t plane = n * p;
     for (int64_t k = 0; k < 4 * p; k++) s.hi[k] = 0, s.lo[k] = 0xffff;
     for (int64_t k = 0; k < 5 * p; k++) s.sums[k] = 0;
     for (int64_t m0 = 0; m0 < n; m0 += BLOCK_FRAMES) {
@@ -99,16 +105,16 @@ iq_half_body(const uint16_t *restrict frames, int64_t n, int64_t p, const float 
         for (int64_t k = 0; k < 5 * p; k++) s.part[k] = 0;
         int64_t m = m0;
         for (; m + UNROLL <= m1; m += UNROLL) {
-            const uint16_t *x = frames + m * p;
+            const uint16_t *x = frames + m * stride;
             if (m + PREFETCH + UNROLL <= n)
-                for (int c = 0; c < 4; c++) {
-                    const char *ahead = (const char *)(x + c * plane + PREFETCH * p);
-                    for (int64_t at = 0; at < (int64_t)(UNROLL * p * sizeof(uint16_t)); at += 64)
-                        __builtin_prefetch(ahead + at);
-                }
-            accumulate(x, plane, p, UNROLL, s);
+                for (int c = 0; c < 4; c++)
+                    for (int u = 0; u < UNROLL; u++) {
+                        const char *ahead = (const char *)(x + c * plane + (PREFETCH + u) * stride);
+                        for (int64_t at = 0; at < (int64_t)(p * sizeof(uint16_t)); at += 64) __builtin_prefetch(ahead + at);
+                    }
+            accumulate(x, plane, stride, p, UNROLL, s);
         }
-        for (; m < m1; m++) accumulate(frames + m * p, plane, p, 1, s);
+        for (; m < m1; m++) accumulate(frames + m * stride, plane, stride, p, 1, s);
         for (int64_t k = 0; k < 5 * p; k++) s.sums[k] += s.part[k];
     }
     const double frames_over_dof = (double)n / (n - 2 > 1 ? n - 2 : 1);
@@ -143,7 +149,7 @@ iq_half_body(const uint16_t *restrict frames, int64_t n, int64_t p, const float 
             e[ch * p + k] = s.w[ch * p + k] * cos_phase[k] + s.w[(4 + ch) * p + k] * sin_phase[k];
     for (int64_t k = 0; k < p; k++) e[4 * p + k] = bias[k] * cos_phase[k] + bias[p + k] * sin_phase[k];
     for (int64_t m = 0; m < n; m++) {
-        const uint16_t *restrict x = frames + m * p;
+        const uint16_t *restrict x = frames + m * stride;
         float *restrict out = r + m * p;
         INDEPENDENT_ITERATIONS
         for (int64_t k = 0; k < p; k++)
@@ -152,13 +158,15 @@ iq_half_body(const uint16_t *restrict frames, int64_t n, int64_t p, const float 
     }
 }
 
-/* weights: (2, 4) uniform, or (2, 4, p) per pixel (`per_pixel`); bias (2, p); saturation < 0: none */
+/* frames' rows `row_stride` and planes `plane_stride` elements apart; weights: (2, 4) uniform, or
+   (2, 4, p) per pixel (`per_pixel`); bias (2, p); saturation < 0: none; r (n, p) contiguous */
 #define DEFINE_KERNEL(NAME, TARGET)                                                                                    \
-    TARGET int NAME(const uint16_t *frames, int64_t n, int64_t p, const float *weights, int64_t per_pixel,             \
+    TARGET int NAME(const uint16_t *frames, int64_t n, int64_t p, int64_t row_stride, int64_t plane_stride,            \
+                    const float *weights, int64_t per_pixel,                                                           \
                     const float *bias, double saturation, float *r, float *cos_phase, float *sin_phase,                \
                     double *noise_var, double *total_var, uint8_t *dead, uint8_t *saturated)                            \
     {                                                                                                                  \
-        if (n < 1 || p < 1) return KERNEL_BAD_SHAPE;                                                                   \
+        if (n < 1 || p < 1 || row_stride < p || plane_stride < n * row_stride) return KERNEL_BAD_SHAPE;                 \
         uint16_t *extremes = malloc(8 * p * sizeof(uint16_t));                                                        \
         float *floats = malloc(18 * p * sizeof(float));                                                                \
         double *sums = malloc(5 * p * sizeof(double));                                                                 \
@@ -169,8 +177,8 @@ iq_half_body(const uint16_t *restrict frames, int64_t n, int64_t p, const float 
         Scratch s = {extremes, extremes + 4 * p, floats, sums, floats + 5 * p, floats + 13 * p};                       \
         for (int j = 0; j < 8; j++)                                                                                    \
             for (int64_t k = 0; k < p; k++) s.w[j * p + k] = per_pixel ? weights[j * p + k] : weights[j];             \
-        iq_half_body(frames, n, p, bias, saturation, r, cos_phase, sin_phase, noise_var, total_var, dead, saturated,   \
-                     s);                                                                                               \
+        iq_half_body(frames, n, p, row_stride, plane_stride, bias, saturation, r, cos_phase, sin_phase, noise_var,     \
+                     total_var, dead, saturated, s);                                                                   \
         free(extremes), free(floats), free(sums);                                                                      \
         return KERNEL_OK;                                                                                              \
     }

@@ -345,8 +345,8 @@ def reconstruct_capture(
                     pending[0].result()
                 pending = (dispatcher.dispatch(*first_inputs), *pending[1:])
 
-        # a tile whose sub-tiles the native kernel reads on the feeding thread (`host_iq`) is
-        # done with its buffer once its dispatch returns: the next tile is read into that buffer
+        # a tile whose sub-tiles the native kernel reads (`host_iq`) is done with its buffer once
+        # its dispatch returns (it waits for the kernel's reads): the next tile is read into that buffer
         # then, and no second tile buffer is taken (a full capture's: 246 MB of fresh memory)
         freed_by = None  # the feeding thread's dispatch of the last tile, where it frees the buffer
         try:

@@ -27,7 +27,7 @@ from ..capture import Capture
 from ..estimate.iq import folded_weights
 from ..runtime import EXECUTABLES, device_value, place_on_devices, stream_devices
 from .plan import TilePlan, program_plan
-from .programs import in_two_halves, inversion_half, inversion_plan, prepare_stages, process_stages
+from .programs import inversion_half, inversion_plan, prepare_stages, process_stages
 
 # the native kernel's rotated-sequence buffers kept for later sub-tiles, at most
 # (`TileDispatcher.free_sequence_buffer`): two tiles' worth of a full frame (32 sub-tiles a tile)
@@ -47,6 +47,32 @@ def aligned_copy(view: np.ndarray, width: int) -> np.ndarray:
     out[..., : view.shape[-1]] = view
     out[..., view.shape[-1] :] = 0
     return out
+
+
+def padded(arr: np.ndarray, width: int, fill) -> np.ndarray:
+    """`arr` with its last axis filled out to `width` with `fill` (itself where it is that wide)."""
+    if arr.shape[-1] == width:
+        return arr
+    out = np.full(arr.shape[:-1] + (width,), fill, arr.dtype)
+    out[..., : arr.shape[-1]] = arr
+    return out
+
+
+_KERNEL_THREADS = None
+_KERNEL_THREADS_LOCK = threading.Lock()
+
+
+def kernel_threads() -> concurrent.futures.ThreadPoolExecutor:
+    """The threads the native I/Q kernel runs sub-tiles on, one per stream device (made once a
+    process): the dispatching thread only places the inversions, so that a short sweep's
+    sub-tiles, whose kernel time is a good part of a 10 Hz map, compute beside each other and
+    beside the inversions (docs/performance.md)."""
+    global _KERNEL_THREADS
+    with _KERNEL_THREADS_LOCK:
+        if _KERNEL_THREADS is None:
+            count = max(1, len(stream_devices()))
+            _KERNEL_THREADS = concurrent.futures.ThreadPoolExecutor(count, thread_name_prefix="native-iq")
+        return _KERNEL_THREADS
 
 
 def tile_buffer(shape: tuple, dtype) -> np.ndarray:
@@ -93,6 +119,7 @@ class TileDispatcher:
         # the native kernel's rotated-sequence buffers, oldest first, each with an output of the
         # inversion that reads it (`free_sequence_buffer`)
         self.sequence_buffers = collections.deque(maxlen=SEQUENCE_BUFFERS_KEPT)
+        self.buffers_lock = threading.Lock()  # the kernel's threads take buffers, this one returns them
         self.prepared = set()  # the kinds of tile `prepare` was asked for
         # the I/Q stage on the host, for the native kernel (`host_iq`): weights, bias, saturation
         stage = plan.iq
@@ -131,6 +158,7 @@ class TileDispatcher:
             return None
         self.prepared.add(kind)
         p, sub = self.cut(frames)
+        halves = self.host_iq(frames) or None  # the native kernel's tiles run the inversion half alone
 
         def like(arr, device):
             """A sub-tile of `arr` as `dispatch` places it, as shape, type and device."""
@@ -152,6 +180,7 @@ class TileDispatcher:
                     self.zero_status(sub, device) if data_status is None else like(data_status, device),
                     like(gain, device),
                     carrier,
+                    halves=halves,
                 )
 
         pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="prepare-programs")
@@ -167,60 +196,85 @@ class TileDispatcher:
 
     def host_iq(self, frames) -> bool:
         """Whether a tile's I/Q halves run in the native kernel on the host (`native.iq_half`)
-        instead of XLA's two I/Q programs: on the CPU, for a tile read as its sub-tiles
-        (`TilePieces`) of 16-bit frames, whose programs split in two halves
-        (`programs.in_two_halves`), in float32, without a known carrier drift to remove."""
-        if not isinstance(frames, TilePieces) or not native.available() or jax.default_backend() != "cpu":
+        instead of XLA's I/Q programs: on the CPU, for 16-bit frames on the host (a tile read
+        as its sub-tiles, `TilePieces`, or an array whose sub-tiles the kernel reads in place;
+        a tile's `jax.ShapeDtypeStruct` asks of such a tile), in float32, without a tracked
+        carrier or a known carrier drift to remove."""
+        if not native.available() or jax.default_backend() != "cpu":
             return False
         stage, (_, _, carrier) = self.host_stage[2], self.placed[0]
-        piece = frames.pieces[0]
+        piece = frames.pieces[0] if isinstance(frames, TilePieces) else frames
+        on_host = isinstance(piece, (np.ndarray, jax.ShapeDtypeStruct))
         return (
             carrier is None
+            and on_host
             and piece.dtype == np.uint16
             and stage.real_dtype == jnp.float32
-            and in_two_halves(stage, piece)
+            and not stage.tracking
         )
 
-    def invert_host_iq(self, frames: TilePieces, dark, data_status, gain, k: int):
-        """Sub-tile k's I/Q half by the native kernel on this thread (the interpreter lock
-        released), and its inversion dispatched (`programs.inversion_half`) on the sub-tile's
-        device with the kernel's outputs as host arrays: the program places them there itself,
-        aliased (`runtime.host_arrays_placed`), cheaper than a `jax.device_put` each."""
-        _, sub = self.cut(frames)
-        device, (_, plan, _) = self.stream(k)
+    def host_iq_half(self, frames, dark, gain, k: int) -> native.IQHalf:
+        """Sub-tile k's I/Q half by the native kernel, on the calling thread (one of the kernel's
+        threads, `kernel_threads`; the interpreter lock released while it runs): its frames read
+        in place where they can be (a `TilePieces` piece, or the sub-tile's columns of an
+        array), else from an aligned, zero-padded copy (a tile's last, narrower sub-tile)."""
+        p, sub = self.cut(frames)
         columns = slice(k * sub, (k + 1) * sub)
+        if isinstance(frames, TilePieces):
+            piece = frames.pieces[k]
+        else:
+            piece = frames[..., columns]
+            if piece.shape[-1] != sub or not native.readable_in_place(piece):
+                piece = aligned_copy(piece, sub)
         weights, bias, stage = self.host_stage
-        pixel_map = lambda m: None if m is None else np.asarray(m[..., columns], np.float32)
-        weights, bias = folded_weights(weights, bias, pixel_map(dark), pixel_map(gain), np.float32)
-        piece = frames.pieces[k]
-        half = native.iq_half(piece, weights, bias, stage.saturation_dn, self.free_sequence_buffer(piece.shape[1:]))
+        pixel_map = lambda m, fill: None if m is None else padded(np.asarray(m[..., columns], np.float32), sub, fill)
+        weights, bias = folded_weights(weights, bias, pixel_map(dark, 0.0), pixel_map(gain, 1.0), np.float32)
+        return native.iq_half(piece, weights, bias, stage.saturation_dn, self.free_sequence_buffer(piece.shape[1:]))
+
+    def invert_host_iq(self, half: native.IQHalf, data_status, k: int, sub: int):
+        """Sub-tile k's inversion (`programs.inversion_half`) dispatched on its device, from its
+        I/Q half by the native kernel (`host_iq_half`) as host arrays: the program places them
+        there itself, aliased (`runtime.host_arrays_placed`), cheaper than a `jax.device_put`
+        each."""
+        device, (_, plan, _) = self.stream(k)
         finite = self.placed_constant(self.all_finite, True, bool, sub, device)
         flags = (half.dead.view(bool), half.saturated.view(bool), finite)
         iq = (half.r, half.noise_var, half.total_var, flags)
-        status = self.zero_status(sub, device) if data_status is None else np.asarray(data_status[columns])
+        if data_status is None:
+            status = self.zero_status(sub, device)
+        else:
+            status = padded(np.asarray(data_status[k * sub : (k + 1) * sub]), sub, 0)
         result = inversion_half(plan, iq, status)
-        self.sequence_buffers.append((half.r, result["depth_m"]))
+        with self.buffers_lock:
+            self.sequence_buffers.append((half.r, result["depth_m"]))
         return result
 
     def free_sequence_buffer(self, shape: tuple) -> np.ndarray | None:
         """The oldest rotated-sequence buffer the native kernel wrote whose inversion has run
         (its device array read it, aliased), for the next sub-tile, or None (a new one): a
         buffer freed and allocated again was fresh memory to the allocator each time (~30 k
-        page faults a full capture, docs/performance.md)."""
-        buffers = self.sequence_buffers
-        if buffers and buffers[0][0].shape == shape and buffers[0][1].is_ready():
-            return buffers.popleft()[0]
+        page faults a full capture, docs/performance.md). Safe from the kernel's threads."""
+        with self.buffers_lock:
+            buffers = self.sequence_buffers
+            if buffers and buffers[0][0].shape == shape and buffers[0][1].is_ready():
+                return buffers.popleft()[0]
         return None
 
     def dispatch(self, frames, dark=None, data_status=None, gain=None) -> PendingTile:
         """Dispatch a tile (4, N, P), or read as its sub-tiles (`TilePieces` of `sub_px`), with
         its per-pixel maps (4, P) and upstream status (P,). Where the native kernel applies
-        (`host_iq`) each sub-tile's I/Q half runs on this thread and only its inversion is
-        dispatched."""
+        (`host_iq`) the sub-tiles' I/Q halves run on the kernel's threads (`kernel_threads`),
+        and this thread dispatches each one's inversion as its half is done: it returns once
+        the kernel has read every frame."""
         p, sub = self.cut(frames)
         several = len(self.devices) > 1
         if self.host_iq(frames):
-            parts = [self.invert_host_iq(frames, dark, data_status, gain, k) for k in range(len(frames.pieces))]
+            count = -(-p // sub)
+            halves = [kernel_threads().submit(self.host_iq_half, frames, dark, gain, k) for k in range(count)]
+            try:
+                parts = [self.invert_host_iq(half.result(), data_status, k, sub) for k, half in enumerate(halves)]
+            finally:
+                concurrent.futures.wait(halves)  # none still reading the frames when this returns
             return PendingTile(parts, p, holds_frames=False, native_iq=True)  # read by the kernel, not aliased
 
         def piece(arr, k, device):

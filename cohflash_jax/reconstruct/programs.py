@@ -10,7 +10,9 @@ its frames twice instead and never stores I/Q: the data checks and the axis's mo
 (`axis_and_checks`), then the rotated sequence (`rotated_from_frames`); only a tracked carrier,
 whose drift follows the I/Q sequence, keeps I/Q (`iq_and_checks`). For short sweeps the
 rotation and the inversion are one program (`rotate_and_invert`): there the calls' own cost
-counts, and the fusion costs nothing. Timings of each split: docs/performance.md.
+counts, and the fusion costs nothing. On the CPU the native kernel (`cohflash_jax.native`)
+computes the I/Q half of 16-bit frames instead, for long and short sweeps, and only the
+inversion (`invert_sequence`) runs here. Timings of each split: docs/performance.md.
 """
 
 from __future__ import annotations
@@ -55,11 +57,14 @@ def process_stages(
     carrier_phase_rad=None,
     *,
     run=run_program,
+    halves: bool | None = None,
 ):
     """`process_tile` with its plan already split into the I/Q stage and the `inversion_plan`:
     a dispatcher splits it once, not once a sub-tile (a 10 Hz map has ten). `run(program,
-    *arguments)` calls each program (default: runs it; `prepare_stages` passes another)."""
-    if in_two_halves(stage, frames):
+    *arguments)` calls each program (default: runs it; `prepare_stages` passes another).
+    `halves`: whether to run it as its two halves (`iq_half`, `inversion_half`) whatever its
+    length (default: `in_two_halves`), as where the native kernel computes the first."""
+    if in_two_halves(stage, frames) if halves is None else halves:
         iq = iq_half(stage, frames, dark, gain, carrier_phase_rad, run=run)
         return inversion_half(plan, iq, data_status, run=run)
     if frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES:
@@ -74,8 +79,8 @@ def process_stages(
 def in_two_halves(stage: IQStage, frames) -> bool:
     """Whether a sub-tile's programs split into an I/Q half that reads its frames (`iq_half`)
     and an inversion half that does not (`inversion_half`): a long sweep without a tracked
-    carrier. The native kernel computes the first half on the host where it can
-    (`engine.TileDispatcher.host_iq`)."""
+    carrier. Where the native kernel computes the first half on the host, a sweep of any
+    length runs the second alone (`engine.TileDispatcher.host_iq`)."""
     return frames.shape[1] >= SPLIT_AXIS_MIN_FRAMES and not stage.tracking
 
 
@@ -92,10 +97,21 @@ def inversion_half(plan: TilePlan, iq: tuple, data_status=None, *, run=run_progr
     return run(invert_sequence, plan, *iq, data_status)
 
 
-def prepare_stages(stage: IQStage, plan: TilePlan, frames, dark, data_status=None, gain=None, carrier_phase_rad=None):
+def prepare_stages(
+    stage: IQStage,
+    plan: TilePlan,
+    frames,
+    dark,
+    data_status=None,
+    gain=None,
+    carrier_phase_rad=None,
+    *,
+    halves: bool | None = None,
+):
     """Get the inversion program `process_stages` would run on arguments like these (each
-    array or `jax.ShapeDtypeStruct` placed on one device), loaded or compiled, without
-    running anything: the programs before it are only traced for their outputs' shapes. The
+    array or `jax.ShapeDtypeStruct` placed on one device; `halves` as it takes it), loaded or
+    compiled, without running anything: the programs before it are only traced for their
+    outputs' shapes. The
     inversion's compile is most of a cold run's (2.4 s of a full capture's 3.4 s), so a
     dispatcher starts it in a thread while the first tile is read and the I/Q programs
     compile (`engine.TileDispatcher.prepare`)."""
@@ -108,7 +124,7 @@ def prepare_stages(stage: IQStage, plan: TilePlan, frames, dark, data_status=Non
         placed = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding, weak_type=x.weak_type)
         return jax.tree.map(placed, shapes)
 
-    process_stages(stage, plan, frames, dark, data_status, gain, carrier_phase_rad, run=run)
+    process_stages(stage, plan, frames, dark, data_status, gain, carrier_phase_rad, run=run, halves=halves)
 
 
 def inversion_plan(plan: TilePlan) -> TilePlan:
