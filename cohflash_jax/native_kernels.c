@@ -27,6 +27,9 @@
 #define BLOCK_FRAMES 64 /* float32 partial sums over this many frames, then float64 */
 #define UNROLL 2        /* frames a pixel's accumulators stay in registers for */
 #define PREFETCH 8      /* frames ahead whose rows are asked for */
+/* pixels a pass over every frame takes at most: a block's accumulators and weights stay in
+   the L1 cache (~130 bytes a pixel); a sub-tile of a short sweep is thousands of pixels wide */
+#define PIXEL_BLOCK 512
 
 /* the loop after it has no dependence between iterations (its arrays' rows do not overlap) */
 #if defined(__clang__)
@@ -93,7 +96,7 @@ static inline __attribute__((always_inline)) void accumulate(const uint16_t *res
 }
 
 static inline __attribute__((always_inline)) void
-iq_half_body(const uint16_t *restrict frames, int64_t n, int64_t p, int64_t stride, int64_t plane,
+iq_half_body(const uint16_t *restrict frames, int64_t n, int64_t p, int64_t stride, int64_t plane, int64_t width,
              const float *restrict bias, double saturation,
              float *restrict r, float *restrict cos_phase, float *restrict sin_phase, double *restrict noise_var,
              double *restrict total_var, uint8_t *restrict dead, uint8_t *restrict saturated, Scratch s)
@@ -122,13 +125,15 @@ iq_half_body(const uint16_t *restrict frames, int64_t n, int64_t p, int64_t stri
         const double mi = s.sums[k] / n, mq = s.sums[p + k] / n;
         const double sii = s.sums[2 * p + k] / n - mi * mi, sqq = s.sums[3 * p + k] / n - mq * mq;
         const double siq = s.sums[4 * p + k] / n - mi * mq;
-        /* φ = ½·atan2(2 siq, sii − sqq) without trigonometry (`estimate.iq.half_angle`) */
-        const double x = sii - sqq, y = 2 * siq, radius = hypot(x, y);
-        const double ax = x >= 0 ? radius + x : y, ay = x >= 0 ? y : radius - x, norm = hypot(ax, ay);
+        /* φ = ½·atan2(2 siq, sii − sqq) without trigonometry (`estimate.iq.half_angle`); the
+           squares stay far inside float64's range for 16-bit data, so no `hypot`, a libm call a
+           pixel (docs/performance.md) */
+        const double x = sii - sqq, y = 2 * siq, radius = sqrt(x * x + y * y);
+        const double ax = x >= 0 ? radius + x : y, ay = x >= 0 ? y : radius - x, norm = sqrt(ax * ax + ay * ay);
         double c = norm > 0 ? ax / norm : 1, sn = norm > 0 ? ay / norm : 0;
         if (c < 0 || (c == 0 && sn < 0)) c = -c, sn = -sn;
         /* the mean term A·w_0, the bias included, comes out positive */
-        if ((mi + bias[k]) * c + (mq + bias[p + k]) * sn < 0) c = -c, sn = -sn;
+        if ((mi + bias[k]) * c + (mq + bias[width + k]) * sn < 0) c = -c, sn = -sn;
         const double orthogonal = sn * sn * sii + c * c * sqq - 2 * sn * c * siq;
         noise_var[k] = (orthogonal > 0 ? orthogonal : 0) * frames_over_dof;
         total_var[k] = sii + sqq > 0 ? sii + sqq : 0;
@@ -147,10 +152,10 @@ iq_half_body(const uint16_t *restrict frames, int64_t n, int64_t p, int64_t stri
     for (int ch = 0; ch < 4; ch++)
         for (int64_t k = 0; k < p; k++)
             e[ch * p + k] = s.w[ch * p + k] * cos_phase[k] + s.w[(4 + ch) * p + k] * sin_phase[k];
-    for (int64_t k = 0; k < p; k++) e[4 * p + k] = bias[k] * cos_phase[k] + bias[p + k] * sin_phase[k];
+    for (int64_t k = 0; k < p; k++) e[4 * p + k] = bias[k] * cos_phase[k] + bias[width + k] * sin_phase[k];
     for (int64_t m = 0; m < n; m++) {
         const uint16_t *restrict x = frames + m * stride;
-        float *restrict out = r + m * p;
+        float *restrict out = r + m * width;
         INDEPENDENT_ITERATIONS
         for (int64_t k = 0; k < p; k++)
             out[k] = e[k] * x[k] + e[p + k] * x[plane + k] + e[2 * p + k] * x[2 * plane + k] +
@@ -167,18 +172,26 @@ iq_half_body(const uint16_t *restrict frames, int64_t n, int64_t p, int64_t stri
                     double *noise_var, double *total_var, uint8_t *dead, uint8_t *saturated)                            \
     {                                                                                                                  \
         if (n < 1 || p < 1 || row_stride < p || plane_stride < n * row_stride) return KERNEL_BAD_SHAPE;                 \
-        uint16_t *extremes = malloc(8 * p * sizeof(uint16_t));                                                        \
-        float *floats = malloc(18 * p * sizeof(float));                                                                \
-        double *sums = malloc(5 * p * sizeof(double));                                                                 \
+        /* blocks of at most PIXEL_BLOCK pixels, as even as vectors of 16 allow, each through */ \
+        /* every frame: r's and the bias's rows are `p` wide, the block's scratch its own width */ \
+        const int64_t blocks = (p + PIXEL_BLOCK - 1) / PIXEL_BLOCK;                                                    \
+        int64_t block = ((p + blocks - 1) / blocks + 15) / 16 * 16;                                                    \
+        block = block < p ? block : p;                                                                                 \
+        uint16_t *extremes = malloc(8 * block * sizeof(uint16_t));                                                    \
+        float *floats = malloc(18 * block * sizeof(float));                                                            \
+        double *sums = malloc(5 * block * sizeof(double));                                                             \
         if (!extremes || !floats || !sums) {                                                                           \
             free(extremes), free(floats), free(sums);                                                                  \
             return KERNEL_NO_MEMORY;                                                                                   \
         }                                                                                                              \
-        Scratch s = {extremes, extremes + 4 * p, floats, sums, floats + 5 * p, floats + 13 * p};                       \
-        for (int j = 0; j < 8; j++)                                                                                    \
-            for (int64_t k = 0; k < p; k++) s.w[j * p + k] = per_pixel ? weights[j * p + k] : weights[j];             \
-        iq_half_body(frames, n, p, row_stride, plane_stride, bias, saturation, r, cos_phase, sin_phase, noise_var,     \
-                     total_var, dead, saturated, s);                                                                   \
+        for (int64_t k0 = 0; k0 < p; k0 += block) {                                                                    \
+            const int64_t b = p - k0 < block ? p - k0 : block;                                                         \
+            Scratch s = {extremes, extremes + 4 * b, floats, sums, floats + 5 * b, floats + 13 * b};                   \
+            for (int j = 0; j < 8; j++)                                                                                \
+                for (int64_t k = 0; k < b; k++) s.w[j * b + k] = per_pixel ? weights[j * p + k0 + k] : weights[j];    \
+            iq_half_body(frames + k0, n, b, row_stride, plane_stride, p, bias + k0, saturation, r + k0,                \
+                         cos_phase + k0, sin_phase + k0, noise_var + k0, total_var + k0, dead + k0, saturated + k0, s); \
+        }                                                                                                              \
         free(extremes), free(floats), free(sums);                                                                      \
         return KERNEL_OK;                                                                                              \
     }

@@ -104,6 +104,24 @@ def test_the_kernel_reads_a_sub_tiles_columns_in_place(n):
 
 
 @needs_kernel
+def test_a_wide_sub_tile_gives_what_its_pieces_give():
+    """A sub-tile wider than the kernel's pixel blocks (`PIXEL_BLOCK` in native_kernels.c: a
+    short sweep's sub-tile is thousands of pixels), with per-pixel weights and bias: each
+    pixel's outputs are the bits the kernel gives it in a narrow sub-tile of its own."""
+    n, p = 35, 1100
+    frames = frames_with_bad_pixels(n, (1, p), seed=9)
+    rng = np.random.default_rng(10)
+    weights = np.array([[1.0, 0.02, -1.0, 0.01], [-0.03, 1.0, 0.02, -1.0]])[..., None] * (1 + 0.05 * rng.random(p))
+    weights = weights.astype(np.float32)
+    bias = rng.normal(0, 3, (2, p)).astype(np.float32)
+    whole = native.iq_half(frames, weights, bias, 16383.0)
+    for cut in (slice(0, 300), slice(300, 700), slice(700, p)):
+        piece = native.iq_half(frames[..., cut], weights[..., cut], bias[:, cut], 16383.0)
+        for name, got, want in zip(native.IQHalf._fields, piece, whole):
+            np.testing.assert_array_equal(got, want[..., cut], err_msg=name)
+
+
+@needs_kernel
 def test_the_kernel_refuses_frames_it_cannot_read():
     w, b = np.eye(2, 4, dtype=np.float32), np.zeros((2, 1), np.float32)
     good = np.zeros((4, 8, 16), np.uint16)
