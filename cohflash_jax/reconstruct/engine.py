@@ -27,7 +27,7 @@ from ..capture import Capture
 from ..estimate.iq import folded_weights
 from ..runtime import EXECUTABLES, device_value, place_on_devices, stream_devices
 from .plan import TilePlan, program_plan
-from .programs import inversion_half, inversion_plan, prepare_stages, process_stages
+from .programs import SPLIT_AXIS_MIN_FRAMES, inversion_half, inversion_plan, prepare_stages, process_stages
 
 # the native kernel's rotated-sequence buffers kept for later sub-tiles, at most
 # (`TileDispatcher.free_sequence_buffer`): two tiles' worth of a full frame (32 sub-tiles a tile)
@@ -213,9 +213,19 @@ class TileDispatcher:
             and not stage.tracking
         )
 
+    @staticmethod
+    def kernel_on_threads(frames) -> bool:
+        """Whether a tile's sub-tiles go to the kernel's threads (`kernel_threads`): a short
+        sweep's, whose kernel is a good part of their work (a 10 Hz map's dispatching thread
+        would hold the inversions back), not a long sweep's, whose inversion costs several times
+        its kernel: there the dispatching (feeding) thread runs each between its dispatches,
+        which measured quicker whole (docs/performance.md)."""
+        piece = frames.pieces[0] if isinstance(frames, TilePieces) else frames
+        return piece.shape[1] < SPLIT_AXIS_MIN_FRAMES
+
     def host_iq_half(self, frames, dark, gain, k: int) -> native.IQHalf:
-        """Sub-tile k's I/Q half by the native kernel, on the calling thread (one of the kernel's
-        threads, `kernel_threads`; the interpreter lock released while it runs): its frames read
+        """Sub-tile k's I/Q half by the native kernel, on the calling thread (the dispatching one,
+        or one of `kernel_threads`; the interpreter lock released while it runs): its frames read
         in place where they can be (a `TilePieces` piece, or the sub-tile's columns of an
         array), else from an aligned, zero-padded copy (a tile's last, narrower sub-tile)."""
         p, sub = self.cut(frames)
@@ -263,18 +273,24 @@ class TileDispatcher:
     def dispatch(self, frames, dark=None, data_status=None, gain=None) -> PendingTile:
         """Dispatch a tile (4, N, P), or read as its sub-tiles (`TilePieces` of `sub_px`), with
         its per-pixel maps (4, P) and upstream status (P,). Where the native kernel applies
-        (`host_iq`) the sub-tiles' I/Q halves run on the kernel's threads (`kernel_threads`),
-        and this thread dispatches each one's inversion as its half is done: it returns once
-        the kernel has read every frame."""
+        (`host_iq`) the sub-tiles' I/Q halves run on this thread or on the kernel's threads
+        (`kernel_on_threads`), and this thread dispatches each one's inversion as its half is
+        done: it returns once the kernel has read every frame."""
         p, sub = self.cut(frames)
         several = len(self.devices) > 1
         if self.host_iq(frames):
             count = -(-p // sub)
-            halves = [kernel_threads().submit(self.host_iq_half, frames, dark, gain, k) for k in range(count)]
-            try:
-                parts = [self.invert_host_iq(half.result(), data_status, k, sub) for k, half in enumerate(halves)]
-            finally:
-                concurrent.futures.wait(halves)  # none still reading the frames when this returns
+            if self.kernel_on_threads(frames):
+                halves = [kernel_threads().submit(self.host_iq_half, frames, dark, gain, k) for k in range(count)]
+                try:
+                    parts = [self.invert_host_iq(half.result(), data_status, k, sub) for k, half in enumerate(halves)]
+                finally:
+                    concurrent.futures.wait(halves)  # none still reading the frames when this returns
+            else:
+                parts = [
+                    self.invert_host_iq(self.host_iq_half(frames, dark, gain, k), data_status, k, sub)
+                    for k in range(count)
+                ]
             return PendingTile(parts, p, holds_frames=False, native_iq=True)  # read by the kernel, not aliased
 
         def piece(arr, k, device):
