@@ -228,7 +228,7 @@ class TileDispatcher:
         or one of `kernel_threads`; the interpreter lock released while it runs): its frames read
         in place where they can be (a `TilePieces` piece, or the sub-tile's columns of an
         array), else from an aligned, zero-padded copy (a tile's last, narrower sub-tile)."""
-        p, sub = self.cut(frames)
+        _, sub = self.cut(frames)
         columns = slice(k * sub, (k + 1) * sub)
         if isinstance(frames, TilePieces):
             piece = frames.pieces[k]
