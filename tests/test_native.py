@@ -282,3 +282,18 @@ def test_a_short_sweep_array_reconstructs_alike_through_the_kernel_and_through_x
     assert np.max(np.abs(through_kernel["depth_m"][valid] - through_xla["depth_m"][valid]) / sigma) < 1e-4
     for name in ("sigma_m", "snr", "amplitude"):
         np.testing.assert_allclose(through_kernel[name][valid], through_xla[name][valid], rtol=1e-4, err_msg=name)
+
+
+@needs_kernel
+def test_a_library_built_from_another_source_is_not_called(monkeypatch):
+    """A kernel library left from an older build (another calling convention) is not loaded:
+    XLA's I/Q programs run, and the kernel's description says to rebuild it."""
+    monkeypatch.setattr(native, "KERNEL_ABI", native.KERNEL_ABI + 1)
+    native.library.cache_clear()
+    try:
+        assert not native.available() and not native.reads_chunks()
+        assert "another version" in native.description() and "XLA's I/Q programs run" in native.description()
+    finally:
+        monkeypatch.undo()
+        native.library.cache_clear()
+    assert native.available()
