@@ -111,10 +111,9 @@ def prepare_stages(
     """Get the inversion program `process_stages` would run on arguments like these (each
     array or `jax.ShapeDtypeStruct` placed on one device; `halves` as it takes it), loaded or
     compiled, without running anything: the programs before it are only traced for their
-    outputs' shapes. The
-    inversion's compile is most of a cold run's (2.4 s of a full capture's 3.4 s), so a
-    dispatcher starts it in a thread while the first tile is read and the I/Q programs
-    compile (`engine.TileDispatcher.prepare`)."""
+    outputs' shapes. The inversion's compile is most of a cold run's (2.4 s of a full
+    capture's 3.4 s), so a dispatcher starts it in a thread while the first tile is read and
+    the I/Q programs compile (`engine.TileDispatcher.prepare`)."""
     sharding = jax.sharding.SingleDeviceSharding(first_device(jax.tree.leaves((frames, dark, data_status, gain))))
 
     def run(program, *arguments):
