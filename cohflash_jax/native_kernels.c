@@ -2,8 +2,8 @@
 
    frames (4, n, p) uint16, pixels contiguous, frame rows `row_stride` and CCD planes
    `plane_stride` elements apart (a sub-tile cut from a wider tile is read in place). For each
-   pixel: each CCD's highest and lowest value, and
-   the second moments of I and Q = W·x + b, summed in float32 over blocks of BLOCK_FRAMES frames
+   pixel: each CCD's highest and lowest value, and the second moments of I and Q = W·x + b,
+   summed in float32 over blocks of BLOCK_FRAMES frames
    and in float64 across blocks; from them the carrier axis (cos φ, sin φ), the orthogonal
    variance and the total variance, as reconstruct/programs.py's `axis_and_checks` computes
    them; then, reading the frames again (from cache), the rotated sequence
@@ -11,7 +11,8 @@
    are centred, so the bias b cancels in them. XLA's CPU code makes ~60 MB of memory traffic of
    a sub-tile's 7.7 MB of frames (docs/performance.md); this reads them twice.
 
-   The loops vectorise over pixels. The kernel is compiled for AVX2 and for the baseline ISA,
+   The loops vectorise over pixels, in blocks of at most PIXEL_BLOCK that go through every frame
+   (a block's accumulators stay in L1). The kernel is compiled for AVX2 and for the baseline ISA,
    and the caller chooses (it knows the ISA XLA is held to); an AVX-512 build ran slower than
    the AVX2 one (docs/performance.md). */
 
@@ -54,7 +55,7 @@ typedef struct {
     float *restrict e;                                         /* (5, p) rotation weights, offset */
 } Scratch;
 
-/* the frames x[u·p + k] (u < frames) into the extremes and partial sums, each pixel's
+/* the frames x[u·stride + k] (u < frames) into the extremes and partial sums, each pixel's
    accumulators in registers across the frames */
 static inline __attribute__((always_inline)) void accumulate(const uint16_t *restrict x, int64_t plane, int64_t stride,
                                                               int64_t p, int frames, Scratch s)
@@ -172,8 +173,8 @@ iq_half_body(const uint16_t *restrict frames, int64_t n, int64_t p, int64_t stri
                     double *noise_var, double *total_var, uint8_t *dead, uint8_t *saturated)                            \
     {                                                                                                                  \
         if (n < 1 || p < 1 || row_stride < p || plane_stride < n * row_stride) return KERNEL_BAD_SHAPE;                 \
-        /* blocks of at most PIXEL_BLOCK pixels, as even as vectors of 16 allow, each through */ \
-        /* every frame: r's and the bias's rows are `p` wide, the block's scratch its own width */ \
+        /* blocks of at most PIXEL_BLOCK pixels, as even as vectors of 16 allow, each through   */ \
+        /* every frame: r's and the bias's rows are `p` wide, the block's scratch its own width  */ \
         const int64_t blocks = (p + PIXEL_BLOCK - 1) / PIXEL_BLOCK;                                                    \
         int64_t block = ((p + blocks - 1) / blocks + 15) / 16 * 16;                                                    \
         block = block < p ? block : p;                                                                                 \
