@@ -5,6 +5,7 @@ rounding, and the same reconstruction, on frames from the independent writer."""
 from __future__ import annotations
 
 import collections
+import os
 import threading
 
 import jax
@@ -297,3 +298,25 @@ def test_a_library_built_from_another_source_is_not_called(monkeypatch):
         monkeypatch.undo()
         native.library.cache_clear()
     assert native.available()
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork here")
+@pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # the child calls nothing of JAX's
+def test_a_forked_child_gets_kernel_threads_of_its_own():
+    """A child forked after the kernel's threads were made has none of them: it makes its own,
+    rather than queueing work for threads that do not exist (which would wait for ever)."""
+    import multiprocessing
+
+    from cohflash_jax.reconstruct.engine import kernel_threads
+
+    assert kernel_threads().submit(os.getpid).result(timeout=30) == os.getpid()
+    context = multiprocessing.get_context("fork")
+    with context.Pool(1) as pool:
+        child, ran_in = pool.apply(_kernel_threads_ran_in, ())
+    assert child == ran_in != os.getpid()
+
+
+def _kernel_threads_ran_in() -> tuple[int, int]:
+    from cohflash_jax.reconstruct.engine import kernel_threads
+
+    return os.getpid(), kernel_threads().submit(os.getpid).result(timeout=30)

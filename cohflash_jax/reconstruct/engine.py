@@ -16,6 +16,7 @@ import concurrent.futures
 import contextvars
 import dataclasses
 import math
+import os
 import threading
 
 import jax
@@ -58,21 +59,24 @@ def padded(arr: np.ndarray, width: int, fill) -> np.ndarray:
     return out
 
 
-_KERNEL_THREADS = None
+_KERNEL_THREADS = (None, None, 0)  # (the process id that made them, the pool, its threads)
 _KERNEL_THREADS_LOCK = threading.Lock()
 
 
 def kernel_threads() -> concurrent.futures.ThreadPoolExecutor:
     """The threads the native I/Q kernel runs sub-tiles on, one per stream device (made once a
-    process): the dispatching thread only places the inversions, so that a short sweep's
-    sub-tiles, whose kernel time is a good part of a 10 Hz map, compute beside each other and
-    beside the inversions (docs/performance.md)."""
+    process, and again in a forked child, which has none of its parent's threads): the
+    dispatching thread only places the inversions, so that a short sweep's sub-tiles, whose
+    kernel time is a good part of a 10 Hz map, compute beside each other and beside the
+    inversions (docs/performance.md)."""
     global _KERNEL_THREADS
     with _KERNEL_THREADS_LOCK:
-        if _KERNEL_THREADS is None:
-            count = max(1, len(stream_devices()))
-            _KERNEL_THREADS = concurrent.futures.ThreadPoolExecutor(count, thread_name_prefix="native-iq")
-        return _KERNEL_THREADS
+        made_by, pool, count = _KERNEL_THREADS
+        if pool is None or made_by != os.getpid():
+            count = count or max(1, len(stream_devices()))  # a forked child does not ask JAX again
+            pool = concurrent.futures.ThreadPoolExecutor(count, thread_name_prefix="native-iq")
+            _KERNEL_THREADS = (os.getpid(), pool, count)
+        return pool
 
 
 def tile_buffer(shape: tuple, dtype) -> np.ndarray:
