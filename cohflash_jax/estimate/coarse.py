@@ -96,9 +96,10 @@ def interpolate_peak(power: Float[Array, "P K"], peak: Int[Array, " P"], axis: i
     return peak + parabolic_offset(power, peak, lambda v: jnp.log(jnp.maximum(v, tiny)), axis)
 
 
-def at_grid_point(power: Float[Array, "P K"], index: Int[Array, " P"], axis: int = -1) -> Float[Array, " P"]:
-    """Each pixel's `power` at its grid point `index` (bins along `axis`, the pixels the other)."""
-    return jnp.squeeze(jnp.take_along_axis(power, jnp.expand_dims(index, axis), axis=axis), axis)
+def at_grid_point(values: Array, index: Int[Array, " P"], axis: int = -1) -> Array:
+    """Each pixel's value of `values` (P, K) or (K, P) at its own grid point `index` (a bin, a
+    window point: along `axis`, the pixels along the other)."""
+    return jnp.squeeze(jnp.take_along_axis(values, jnp.expand_dims(index, axis), axis=axis), axis)
 
 
 def parabolic_offset(power: Float[Array, "P K"], peak: Int[Array, " P"], transform=lambda v: v, axis: int = -1):

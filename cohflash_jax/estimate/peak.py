@@ -21,6 +21,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup
+from .coarse import at_grid_point
 
 # Grid steps from either end of the window within which an interpolated peak is flagged
 MIRROR_EDGE_BINS = 2.0
@@ -48,7 +49,7 @@ def peak_neighbours(spec, peak):
     """The complex bins below, at and above each pixel's peak (float64 complex), the peak
     moved off the spectrum's ends so that both neighbours exist → (below, centre, above, peak)."""
     peak = jnp.clip(peak, 1, spec.shape[-1] - 2)
-    take = lambda idx: jnp.take_along_axis(spec, idx[:, None], axis=-1)[:, 0].astype(jnp.complex128)
+    take = lambda idx: at_grid_point(spec, idx).astype(jnp.complex128)
     return take(peak - 1), take(peak), take(peak + 1), peak
 
 

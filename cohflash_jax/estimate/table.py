@@ -34,7 +34,7 @@ from ..constants import SPEED_OF_LIGHT_M_PER_S as C
 from ..fisher import depth_information, phase_locked_sigma_m, sigma_from_information, well_posed
 from ..runtime import MATMUL_PRECISION, device_value
 from .base import AbstractDepthEstimator, DepthEstimate, EstimatorSetup, FitResult, reduced_chi2
-from .coarse import first_argmax
+from .coarse import at_grid_point, first_argmax
 from .polish import STEP_TOLERANCE_FLOOR_MM, STEP_TOLERANCE_SIGMA, newton_polish
 from .window_ml import grid_for
 from .window_model import UniformModel
@@ -242,12 +242,12 @@ def refine_ml_table(
     inside = (idx >= 0) & (idx <= hi[None, :]) & (idx < g_count)
     window = jnp.take_along_axis(scores, jnp.clip(idx, 0, g_count - 1), axis=0)  # (W, P)
     found = jnp.any(inside, axis=0)  # an empty window (no finite coarse depth) picks point 0, as a full mask did
-    pick = lambda k: jnp.where(found, jnp.take_along_axis(idx, k[None, :], axis=0)[0], 0)
+    pick = lambda k: jnp.where(found, at_grid_point(idx, k, axis=0), 0)
     best = pick(first_argmax(jnp.where(inside, jnp.abs(window), -1.0), axis=0))
     if prefer_positive:
         signed = jnp.where(inside, window, -1.0)
         k_signed = first_argmax(signed, axis=0)
-        has_positive = jnp.take_along_axis(signed, k_signed[None, :], axis=0)[0] > 0
+        has_positive = at_grid_point(signed, k_signed, axis=0) > 0
         best = jnp.where(has_positive, pick(k_signed), best)
     # the table's entries at each pixel's grid point (`best` is a grid index: "clip" is a
     # plain gather, without "fill"'s out-of-range select)

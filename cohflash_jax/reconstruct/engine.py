@@ -54,9 +54,7 @@ def padded(arr: np.ndarray, width: int, fill) -> np.ndarray:
     """`arr` with its last axis filled out to `width` with `fill` (itself where it is that wide)."""
     if arr.shape[-1] == width:
         return arr
-    out = np.full(arr.shape[:-1] + (width,), fill, arr.dtype)
-    out[..., : arr.shape[-1]] = arr
-    return out
+    return np.pad(arr, [(0, 0)] * (arr.ndim - 1) + [(0, width - arr.shape[-1])], constant_values=fill)
 
 
 _KERNEL_THREADS = (None, None, 0)  # (the process id that made them, the pool, its threads)
