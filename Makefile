@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.cohflash-installed
 
-.PHONY: demo test lint format bench bytecode clean
+.PHONY: demo test lint format bench bytecode native clean
 
 $(STAMP): pyproject.toml setup.py cohflash_jax/native_kernels.c
 	$(PYTHON) -m venv $(VENV)
@@ -14,9 +14,17 @@ $(STAMP): pyproject.toml setup.py cohflash_jax/native_kernels.c
 	$(PY) -m pip install -q -e ".[test]"
 	touch $(STAMP)
 
+# the native I/Q kernel (optional: cohflash_jax/native_kernels.c): the install builds it; where
+# it has gone since (deleted, or a venv of another Python) or does not load, and a C compiler is
+# here, install again to build it, rather than let every run fall back to XLA's slower I/Q programs
+native: $(STAMP)
+	@$(PY) -c "import sys; from cohflash_jax import native; sys.exit(0 if native.available() or native.turned_off() else 3)" \
+		|| ! command -v $${CC:-cc} > /dev/null \
+		|| (echo "the native I/Q kernel is missing or does not load: building it" && $(PY) -m pip install -q --no-deps -e .)
+
 # the packages' bytecode, as a regular install leaves it (an editable install runs the
 # sources; where Python may not write bytecode, every process would compile them again)
-bytecode: $(STAMP)
+bytecode: native
 	$(PY) -c "from cohflash_jax.process import compile_package_bytecode; compile_package_bytecode()"
 
 demo: bytecode
