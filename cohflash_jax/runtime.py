@@ -985,13 +985,36 @@ def xla_cpu_has_avx512() -> bool:
     return True
 
 
+def cpu_family_and_model(cpuinfo: str | None = None) -> str | None:
+    """The CPU's family and model numbers as /proc/cpuinfo (or the text `cpuinfo`) lists them,
+    e.g. "family 25 model 17"; None where they cannot be read. They tell apart CPUs whose model
+    name does not: a VM's "AMD EPYC" was a Zen 4 (family 25) on one machine and a Zen 5 (family
+    26) on another, whose speeds differ (docs/performance.md)."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            return None
+    fields = {}
+    for line in cpuinfo.splitlines():
+        if not line.strip():
+            break  # the first processor's entry only
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    family, model = fields.get("cpu family"), fields.get("model")
+    return f"family {family} model {model}" if family and model else None
+
+
 def cpu_description() -> str:
-    """The CPU as benchmarks and studies name it: model, logical CPUs, the widest vector ISA
-    XLA can use, and XLA_FLAGS where set (`--xla_cpu_max_isa=AVX2` holds XLA to AVX2)."""
+    """The CPU as benchmarks and studies name it: model name with its family and model numbers,
+    logical CPUs, the widest vector ISA XLA can use, and XLA_FLAGS where set
+    (`--xla_cpu_max_isa=AVX2` holds XLA to AVX2)."""
     model, flags = cpu_model_and_flags()
+    numbers = cpu_family_and_model()
     isa = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "SSE/other"
     xla = os.environ.get("XLA_FLAGS", "")
-    return f"{model}; {os.cpu_count()} logical CPUs; ISA {isa}" + (f"; XLA_FLAGS={xla}" if xla else "")
+    named = f"{model} ({numbers})" if numbers else model
+    return f"{named}; {os.cpu_count()} logical CPUs; ISA {isa}" + (f"; XLA_FLAGS={xla}" if xla else "")
 
 
 def open_hdf5_files_for_writing() -> list[str]:

@@ -727,3 +727,19 @@ def test_the_cpu_is_read_without_running_uname(monkeypatch):
     finally:
         runtime.cpu_model_and_flags.cache_clear()
     assert model and model != "unknown CPU"
+
+
+def test_the_cpu_is_named_with_its_family_and_model_numbers():
+    """Benchmarks name the CPU by family and model as well as by name: two VMs' "AMD EPYC"
+    were a Zen 4 and a Zen 5."""
+    from cohflash_jax import runtime
+
+    entry = (
+        "processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 25\nmodel\t\t: 17\n"
+        "model name\t: AMD EPYC\nflags\t\t: fpu avx2\n\nprocessor\t: 1\ncpu family\t: 99\nmodel\t\t: 9\n"
+    )
+    assert runtime.cpu_family_and_model(entry) == "family 25 model 17"
+    assert runtime.cpu_family_and_model("processor\t: 0\nmodel name\t: a CPU without numbers\n") is None
+    numbers = runtime.cpu_family_and_model()
+    if numbers is not None:  # Linux on x86 lists them
+        assert f"({numbers})" in runtime.cpu_description()
