@@ -952,6 +952,23 @@ def prefetch_for_cli(argv) -> bool:
         return False
 
 
+def cpuinfo_fields(cpuinfo: str | None = None) -> dict[str, str]:
+    """The first processor's entry of /proc/cpuinfo (or of the text `cpuinfo`) as a dict of its
+    fields ("model name", "flags", "cpu family", …); empty where it cannot be read."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            return {}
+    fields = {}
+    for line in cpuinfo.splitlines():
+        if not line.strip():
+            break  # the first processor's entry ends
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    return fields
+
+
 @functools.cache
 def cpu_model_and_flags() -> tuple[str, frozenset[str]]:
     """The CPU's model name and feature flags as /proc/cpuinfo lists them (the platform's
@@ -959,16 +976,8 @@ def cpu_model_and_flags() -> tuple[str, frozenset[str]]:
     only then: on Linux `platform.processor` runs `uname -p` in a child process."""
     import platform
 
-    model, flags = None, frozenset()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-            if line.startswith("flags"):
-                flags = frozenset(line.split(":", 1)[1].split())
-                break
-    except OSError:
-        pass
+    fields = cpuinfo_fields()
+    model, flags = fields.get("model name"), frozenset(fields.get("flags", "").split())
     return model or platform.processor() or "unknown CPU", flags
 
 
@@ -990,17 +999,7 @@ def cpu_family_and_model(cpuinfo: str | None = None) -> str | None:
     e.g. "family 25 model 17"; None where they cannot be read. They tell apart CPUs whose model
     name does not: a VM's "AMD EPYC" was a Zen 4 (family 25) on one machine and a Zen 5 (family
     26) on another, whose speeds differ (docs/performance.md)."""
-    if cpuinfo is None:
-        try:
-            cpuinfo = Path("/proc/cpuinfo").read_text()
-        except OSError:
-            return None
-    fields = {}
-    for line in cpuinfo.splitlines():
-        if not line.strip():
-            break  # the first processor's entry only
-        key, _, value = line.partition(":")
-        fields.setdefault(key.strip(), value.strip())
+    fields = cpuinfo_fields(cpuinfo)
     family, model = fields.get("cpu family"), fields.get("model")
     return f"family {family} model {model}" if family and model else None
 
