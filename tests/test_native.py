@@ -302,6 +302,7 @@ def test_a_library_built_from_another_source_is_not_called(monkeypatch):
 
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork here")
 @pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # the child calls nothing of JAX's
+@pytest.mark.filterwarnings("ignore:This process .* is multi-threaded:DeprecationWarning")  # the fork is the test
 def test_a_forked_child_gets_kernel_threads_of_its_own():
     """A child forked after the kernel's threads were made has none of them: it makes its own,
     rather than queueing work for threads that do not exist (which would wait for ever)."""
