@@ -205,7 +205,7 @@ class TileDispatcher:
         if not native.available() or jax.default_backend() != "cpu":
             return False
         stage, (_, _, carrier) = self.host_stage[2], self.placed[0]
-        piece = frames.pieces[0] if isinstance(frames, TilePieces) else frames
+        piece = first_piece(frames)
         on_host = isinstance(piece, (np.ndarray, jax.ShapeDtypeStruct))
         return (
             carrier is None
@@ -222,8 +222,7 @@ class TileDispatcher:
         would hold the inversions back), not a long sweep's, whose inversion costs several times
         its kernel: there the dispatching (feeding) thread runs each between its dispatches,
         which measured quicker whole (docs/performance.md)."""
-        piece = frames.pieces[0] if isinstance(frames, TilePieces) else frames
-        return piece.shape[1] < SPLIT_AXIS_MIN_FRAMES
+        return first_piece(frames).shape[1] < SPLIT_AXIS_MIN_FRAMES
 
     def host_iq_half(self, frames, dark, gain, k: int) -> native.IQHalf:
         """Sub-tile k's I/Q half by the native kernel, on the calling thread (the dispatching one,
@@ -343,10 +342,16 @@ class TilePieces:
         return len(self.pieces) * self.pieces[0].shape[-1]
 
 
+def first_piece(arr):
+    """What `TileDispatcher.dispatch` cuts an input as: a `TilePieces`' first piece, else the
+    array (or its `jax.ShapeDtypeStruct`) itself."""
+    return arr.pieces[0] if isinstance(arr, TilePieces) else arr
+
+
 def shape_and_type(arr) -> tuple:
     """(shape, dtype) of an input as `TileDispatcher.dispatch` cuts it (a `TilePieces` by its
     pieces; an array, or its `jax.ShapeDtypeStruct`, whole)."""
-    piece = arr.pieces[0] if isinstance(arr, TilePieces) else arr
+    piece = first_piece(arr)
     return piece.shape, np.dtype(piece.dtype)
 
 
